@@ -1,0 +1,1 @@
+"""What the tracker and the mapper share: geometry, I/O, datasets, evaluation."""
