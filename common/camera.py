@@ -34,9 +34,13 @@ class Camera:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
         if not all(np.isfinite(values)) or self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+            raise ValueError(
+                f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}"
+            )
         if len(self.dist) not in (0, 4, 5):
-            raise ValueError(f"distortion needs 4 or 5 coefficients (k1 k2 p1 p2 [k3]), got {self.dist}")
+            raise ValueError(
+                f"distortion needs 4 or 5 coefficients (k1 k2 p1 p2 [k3]), got {self.dist}"
+            )
 
     @property
     def size(self) -> tuple[int, int]:
@@ -139,7 +143,8 @@ def read_calib(path: Path) -> tuple[float, float, float, float, tuple[float, ...
         raise DatasetError(f"{path}: intrinsics must be numbers, got {lines[0]!r}") from None
     if len(values) not in (4, 8, 9):
         raise DatasetError(
-            f"{path}: expected 4, 8 or 9 numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {len(values)}"
+            f"{path}: expected 4, 8 or 9 numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', "
+            f"got {len(values)}"
         )
     if not all(np.isfinite(values)) or values[0] <= 0 or values[1] <= 0:
         raise DatasetError(f"{path}: fx, fy must be positive and all values finite, got {values}")

@@ -20,8 +20,14 @@ import torch
 
 from dimslam.common.shapes import check_shape
 
-# Below this angle (radians) the closed forms lose precision; their Taylor series take over.
-_SMALL_ANGLE = 1e-3
+# Below this angle (radians) the closed forms lose precision to cancellation (1 - cos t is
+# tiny); their Taylor series, exact to ~t^6, take over. float32 cancels much earlier.
+_SMALL_ANGLE = {torch.float64: 1e-3}
+_SMALL_ANGLE_LOW_PRECISION = 0.1
+
+
+def _small_angle(dtype: torch.dtype) -> float:
+    return _SMALL_ANGLE.get(dtype, _SMALL_ANGLE_LOW_PRECISION)
 
 
 def identity(batch: tuple[int, ...] = (), dtype=torch.float32, device=None) -> torch.Tensor:
@@ -68,14 +74,12 @@ def hat(w: torch.Tensor) -> torch.Tensor:
     check_shape("w", w, (..., 3))
     zero = torch.zeros_like(w[..., 0])
     x, y, z = w.unbind(-1)
-    return torch.stack(
-        [zero, -z, y, z, zero, -x, -y, x, zero], dim=-1
-    ).reshape(*w.shape[:-1], 3, 3)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*w.shape[:-1], 3, 3)
 
 
 def _so3_coefficients(theta2: torch.Tensor):
     """A = sin t / t, B = (1 - cos t) / t^2, C = (t - sin t) / t^3 with safe small-angle forms."""
-    small = theta2 < _SMALL_ANGLE**2
+    small = theta2 < _small_angle(theta2.dtype) ** 2
     safe2 = torch.where(small, torch.ones_like(theta2), theta2)
     theta = safe2.sqrt()
     s, c = torch.sin(theta), torch.cos(theta)
@@ -116,7 +120,7 @@ def log_so3(R: torch.Tensor) -> torch.Tensor:
     q = _matrix_to_quat(R)  # qw >= 0
     qv, qw = q[..., :3], q[..., 3]
     n = qv.norm(dim=-1)
-    small = n < _SMALL_ANGLE
+    small = n < 1e-3  # atan2 is well conditioned; only the division by n needs the series
     safe_n = torch.where(small, torch.ones_like(n), n)
     # angle / n, with the series 2/qw * (1 - n^2 / (3 qw^2)) when n -> 0 (then qw -> 1).
     factor = torch.where(
@@ -133,7 +137,7 @@ def log_se3(T: torch.Tensor) -> torch.Tensor:
     w = log_so3(T[..., :3, :3])
     theta2 = (w * w).sum(-1)
     A, B, _ = _so3_coefficients(theta2)
-    small = theta2 < _SMALL_ANGLE**2
+    small = theta2 < _small_angle(theta2.dtype) ** 2
     safe2 = torch.where(small, torch.ones_like(theta2), theta2)
     # V^-1 = I - W/2 + D W^2, D = (1 - A / (2B)) / theta^2.
     D = torch.where(small, 1 / 12 + theta2 / 720 + theta2**2 / 30240, (1 - A / (2 * B)) / safe2)
@@ -164,9 +168,15 @@ def quat_to_matrix(q_xyzw: torch.Tensor) -> torch.Tensor:
     x, y, z, w = q.unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - z * w),
+            2 * (x * z + y * w),
+            2 * (x * y + z * w),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - x * w),
+            2 * (x * z - y * w),
+            2 * (y * z + x * w),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(*q.shape[:-1], 3, 3)

@@ -18,11 +18,12 @@ def check_shape(name: str, x: Any, shape: tuple) -> None:
     if shape and shape[0] is Ellipsis:
         tail = shape[1:]
         ok = len(actual) >= len(tail) and all(
-            want is None or want == got for want, got in zip(tail, actual[len(actual) - len(tail):])
+            want is None or want == got
+            for want, got in zip(tail, actual[len(actual) - len(tail) :], strict=True)
         )
     else:
         ok = len(actual) == len(shape) and all(
-            want is None or want == got for want, got in zip(shape, actual)
+            want is None or want == got for want, got in zip(shape, actual, strict=True)
         )
     if not ok:
         spec = ", ".join("..." if s is Ellipsis else "N" if s is None else str(s) for s in shape)

@@ -68,7 +68,8 @@ def read_tum(path: str | Path) -> Trajectory:
         parts = line.replace(",", " ").split()
         if len(parts) != 8:
             raise DatasetError(
-                f"{path}:{number}: expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(parts)}"
+                f"{path}:{number}: expected 8 values 'timestamp tx ty tz qx qy qz qw', "
+                f"got {len(parts)}"
             )
         try:
             values = [float(x) for x in parts]
