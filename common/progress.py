@@ -30,7 +30,8 @@ class Progress:
         self.tty = self.stream.isatty()
         self.start = time.perf_counter()
         self.count = 0
-        self._last_print = -float("inf")
+        # The first line waits one interval: a rate or ETA from the first step means nothing.
+        self._last_print = self.start
 
     def update(self, count: int, **figures: float | str) -> None:
         """Record that `count` steps are done; `figures` (e.g. loss=0.1) are shown alongside."""
