@@ -13,19 +13,18 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from dimslam.common import logs
 from dimslam.common.datasets import LAYOUTS, ReaderOptions, open_dataset
 from dimslam.common.errors import DimslamError
-from dimslam.common.evaluation import (
-    evaluate_mesh,
-    evaluate_trajectory,
-    load_mesh,
-    write_metrics,
-)
+from dimslam.common.evaluation import write_metrics
+from dimslam.common.options import add_config_arguments, apply_overrides, overrides_from_args
 from dimslam.common.progress import Progress
+from dimslam.common.report import evaluate_files, format_metrics
+from dimslam.common.slam import PRESETS, SlamConfig, device_for, run_dataset
 from dimslam.common.synth import write_sequence
-from dimslam.common.trajectory import read_tum, write_tum
+from dimslam.common.trajectory import write_tum
 
 log = logging.getLogger("dimslam")
 
@@ -144,90 +143,8 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 # eval
 
 
-def load_ground_truth(gt: str, layout: str | None):
-    """A ground-truth trajectory from a TUM file, or from a dataset with its camera and mesh."""
-
-    path = Path(gt)
-    if path.is_file() and layout is None and path.suffix == ".txt":
-        return read_tum(path), None, None
-    reader = open_dataset(gt, layout=layout, options=ReaderOptions())
-    traj = reader.ground_truth()
-    if traj is None or len(traj) == 0:
-        raise DimslamError(f"{gt}: the dataset has no ground-truth poses")
-    mesh = path / "mesh.ply"
-    return traj, reader.camera, mesh if mesh.is_file() else None
-
-
-def format_metrics(result: dict) -> str:
-    """A short human-readable table of the figures in `result` (the `--json` keys)."""
-    rows = [
-        ("poses matched", "matched", "{:d}"),
-        ("ATE RMSE", "ate_rmse_m", "{:.4f} m"),
-        ("ATE mean", "ate_mean_m", "{:.4f} m"),
-        ("ATE median", "ate_median_m", "{:.4f} m"),
-        ("ATE max", "ate_max_m", "{:.4f} m"),
-        ("alignment scale", "scale", "{:.4f}"),
-        ("RPE translation", "rpe_trans_per_m", "{:.4f} m/m"),
-        ("RPE rotation", "rpe_rot_deg_per_frame", "{:.4f} deg/frame"),
-        ("mesh accuracy", "accuracy_cm", "{:.2f} cm"),
-        ("mesh completion", "completion_cm", "{:.2f} cm"),
-        ("completion ratio (<5 cm)", "completion_ratio", "{:.2f} %"),
-    ]
-    width = max(len(name) for name, _, _ in rows)
-    return "\n".join(
-        f"{name:<{width}}  {fmt.format(result[key])}" for name, key, fmt in rows if key in result
-    )
-
-
-def evaluate(
-    traj_path: Path,
-    gt: str,
-    *,
-    layout: str | None = None,
-    align: str = "sim3",
-    max_dt: float = 0.02,
-    mesh: Path | None = None,
-    gt_mesh: Path | None = None,
-    samples: int = 200_000,
-    plot: Path | None = None,
-) -> dict:
-    """Evaluate a TUM trajectory (and optionally a mesh) against ground truth; returns figures."""
-
-    est = read_tum(traj_path)
-    gt_traj, camera, dataset_mesh = load_ground_truth(gt, layout)
-    metrics = evaluate_trajectory(est, gt_traj, align=align, max_dt=max_dt)
-    result = metrics.to_dict()
-    if mesh is not None:
-        gt_mesh = gt_mesh or dataset_mesh
-        if gt_mesh is None:
-            raise DimslamError("--mesh needs --gt-mesh (or a dataset folder holding mesh.ply)")
-        if camera is None:
-            log.warning("no camera for %s: the ground-truth mesh is not culled to the frustums", gt)
-        mesh_metrics = evaluate_mesh(
-            load_mesh(mesh),
-            load_mesh(gt_mesh),
-            metrics.alignment,
-            gt_traj.poses if camera is not None else None,
-            camera,
-            samples=samples,
-        )
-        result.update(mesh_metrics.to_dict())
-    elif gt_mesh is not None:
-        raise DimslamError("--gt-mesh needs --mesh (the estimated mesh to compare)")
-    if plot is not None:
-        from dimslam.common.plot import plot_trajectory
-
-        plot_trajectory(
-            plot,
-            metrics.alignment.apply_trajectory(est),
-            gt_traj,
-            title=f"{traj_path.name}: ATE RMSE {100 * metrics.ate_rmse_m:.2f} cm",
-        )
-    return result
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
-    result = evaluate(
+    result = evaluate_files(
         args.traj,
         args.gt,
         layout=args.layout,
@@ -243,6 +160,41 @@ def cmd_eval(args: argparse.Namespace) -> int:
         write_metrics(args.json, result)
     if args.plot:
         print(f"plot written to {args.plot}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# run
+
+
+def slam_config(args: argparse.Namespace):
+    """The preset named by `--preset` with the user's per-field overrides applied."""
+    try:
+        return apply_overrides(PRESETS[args.preset], overrides_from_args(args))
+    except ValueError as e:
+        raise DimslamError(str(e)) from None
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    cfg = slam_config(args)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    summary = run_dataset(
+        args.dataset,
+        args.out,
+        cfg,
+        device_for(args.device),
+        max_frames=args.max_frames,
+        layout=args.layout,
+        mesh=not args.no_mesh,
+    )
+    print(
+        f"{summary.frames} frames, {summary.keyframes} keyframes in {summary.seconds:.1f} s; "
+        f"outputs in {args.out}"
+    )
+    if summary.lost:
+        print("error: tracking lost; the trajectory so far is in trajectory.txt", file=sys.stderr)
+        return 3
     return 0
 
 
@@ -277,7 +229,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     traj_path = out / "trajectory.txt"
     write_tum(traj_path, reader.ground_truth(), header="demo: ground truth standing in for SLAM")
     print("3/3 evaluating against the ground truth")
-    result = evaluate(traj_path, str(scene), mesh=scene / "mesh.ply", plot=out / "trajectory.png")
+    result = evaluate_files(
+        traj_path, str(scene), mesh=scene / "mesh.ply", plot=out / "trajectory.png"
+    )
     write_metrics(out / "metrics.json", result)
     print(format_metrics(result))
     print(f"outputs in {out}: trajectory.txt, metrics.json, trajectory.png")
@@ -376,6 +330,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=_size, default=(320, 240), help="WIDTHxHEIGHT (default: 320x240)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default: 0)")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "run",
+        help="run SLAM on a dataset (tracking and mapping in one process)",
+        description="Track the camera and build the map of a dataset, then write trajectory.txt, "
+        "keyframes.txt, mesh.ply, config.json, log.txt and, where the dataset has ground truth, "
+        "metrics.json.",
+    )
+    p.add_argument("dataset", help="dataset folder or video (any layout `dimslam dataset` reads)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    p.add_argument(
+        "--preset", choices=sorted(PRESETS), default="cpu", help="settings (default: cpu)"
+    )
+    p.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--layout", choices=sorted(LAYOUTS), help="dataset layout (default: detected)")
+    p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
+    add_config_arguments(p, SlamConfig(), "settings")
+    p.set_defaults(func=cmd_run)
     return parser
 
 

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dimslam.common.options import option
 from dimslam.common.shapes import check_shape
 
 
@@ -27,22 +28,24 @@ from dimslam.common.shapes import check_shape
 class MapConfig:
     """Shape of the implicit map. Lengths are in map units (the scale gauge makes them ~metres)."""
 
-    voxel_sizes: tuple[float, ...] = (0.64, 0.48, 0.32, 0.24, 0.16, 0.08)
-    """Voxel size of each geometry grid, coarse to fine (paper: 64/48/32/24/16/8 cm)."""
-    geometry_channels: int = 1
-    """Feature channels per geometry grid (paper: 1)."""
-    color_channels: int = 3
-    """Colour feature channels on each of the `color_levels` finest grids (0: none)."""
-    color_levels: int = 2
-    """How many of the finest levels also store colour features."""
-    hidden: int = 32
-    """Width of the decoder's hidden layers."""
-    layers: int = 3
-    """Number of hidden layers of the decoder."""
-    init_std: float = 0.001
-    """Standard deviation of the grids' normal initialization (paper: 0.001)."""
-    bound: tuple[float, float, float, float, float, float] = (-6.0, -6.0, -6.0, 6.0, 6.0, 6.0)
-    """Scene box `(xmin, ymin, zmin, xmax, ymax, zmax)` in the first camera's frame."""
+    voxel_sizes: tuple[float, ...] = option(
+        (0.64, 0.48, 0.32, 0.24, 0.16, 0.08),
+        "Voxel size of each geometry grid, coarse to fine (paper: 64/48/32/24/16/8 cm).",
+    )
+    geometry_channels: int = option(1, "Feature channels per geometry grid (paper: 1).")
+    color_channels: int = option(
+        3, "Colour feature channels on each of the `color_levels` finest grids (0: none)."
+    )
+    color_levels: int = option(2, "How many of the finest levels also store colour features.")
+    hidden: int = option(32, "Width of the decoder's hidden layers.")
+    layers: int = option(3, "Number of hidden layers of the decoder.")
+    init_std: float = option(
+        0.001, "Standard deviation of the grids' normal initialization (paper: 0.001)."
+    )
+    bound: tuple[float, ...] = option(
+        (-6.0, -6.0, -6.0, 6.0, 6.0, 6.0),
+        "Scene box (xmin, ymin, zmin, xmax, ymax, zmax) in the first camera's frame.",
+    )
 
 
 @dataclass(frozen=True)
@@ -64,6 +67,8 @@ class Field(nn.Module):
     def __init__(self, cfg: MapConfig, device: torch.device | str | None = None) -> None:
         super().__init__()
         self.cfg = cfg
+        if len(cfg.bound) != 6:
+            raise ValueError(f"map bound needs 6 numbers (min xyz, max xyz), got {cfg.bound}")
         bound = torch.tensor(cfg.bound, dtype=torch.float32).view(2, 3)
         if not torch.all(bound[1] > bound[0]):
             raise ValueError(f"map bound must have min < max on every axis, got {cfg.bound}")

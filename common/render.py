@@ -19,6 +19,7 @@ import torch
 
 from dimslam.common.camera import Camera
 from dimslam.common.field import FieldOutput
+from dimslam.common.options import option
 from dimslam.common.shapes import check_shape
 
 FieldFn = Callable[..., FieldOutput]
@@ -29,16 +30,11 @@ FieldFn = Callable[..., FieldOutput]
 class RenderConfig:
     """Sampling along rays; depths in map units."""
 
-    n_stratified: int = 32
-    """Stratified samples per ray (paper: 32)."""
-    n_importance: int = 16
-    """Samples added per importance round (paper: 16)."""
-    importance_rounds: int = 4
-    """Importance rounds (paper: 4, so 96 samples in all)."""
-    near: float = 0.1
-    """Nearest rendered depth."""
-    far: float = 8.0
-    """Farthest rendered depth."""
+    n_stratified: int = option(32, "Stratified samples per ray (paper: 32).")
+    n_importance: int = option(16, "Samples added per importance round (paper: 16).")
+    importance_rounds: int = option(4, "Importance rounds (paper: 4, so 96 samples in all).")
+    near: float = option(0.1, "Nearest rendered depth.")
+    far: float = option(8.0, "Farthest rendered depth.")
 
 
 @dataclass(frozen=True)

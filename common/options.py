@@ -1,0 +1,113 @@
+"""Frozen dataclass configs with documented fields, turned into command-line flags.
+
+Every config field is declared with `option(default, "one-line doc")`; the doc becomes the
+flag's `--help` text. Nested configs become dotted flags: `SlamConfig.tracker.iters` is
+`--tracker.iters`. Defaults live only in the dataclasses; presets are named instances.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import types
+import typing
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+
+def option(default: Any, doc: str) -> Any:
+    """A config field with its default and a one-line doc (the `--help` text)."""
+    return dataclasses.field(default=default, metadata={"doc": doc})
+
+
+def section(factory: type, doc: str) -> Any:
+    """A nested config field (its own fields become dotted flags)."""
+    return dataclasses.field(default_factory=factory, metadata={"doc": doc})
+
+
+def _leaf_fields(cfg: Any, prefix: str = ""):
+    hints = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        name = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            yield from _leaf_fields(value, name + ".")
+        else:
+            yield name, hints[f.name], value, f.metadata.get("doc", "")
+
+
+def _parse(kind: Any, text: str) -> Any:
+    origin = typing.get_origin(kind)
+    args = typing.get_args(kind)
+    if origin in (typing.Union, types.UnionType):
+        if text.lower() in ("none", ""):
+            return None
+        return _parse(next(a for a in args if a is not type(None)), text)
+    if origin is tuple:
+        item = args[0]
+        return tuple(_parse(item, part) for part in text.split(",") if part.strip())
+    if kind is bool:
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"expected true or false, got {text!r}")
+    return kind(text)
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, tuple):
+        return ",".join(str(v) for v in value)
+    return str(value)
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, defaults: Any, title: str) -> None:
+    """One `--a.b` flag per leaf field of `defaults` (values are parsed later, per preset)."""
+    group = parser.add_argument_group(title, "per-field overrides of the chosen preset")
+    for name, kind, value, doc in _leaf_fields(defaults):
+        metavar = getattr(kind, "__name__", "VALUE").upper()
+        if typing.get_origin(kind) is tuple:
+            metavar = "A,B,..."
+        group.add_argument(
+            f"--{name}",
+            dest=f"cfg:{name}",
+            default=None,
+            metavar=metavar,
+            help=f"{doc} (default: {_show(value)})",
+        )
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
+    """The `--a.b VALUE` flags a user actually gave."""
+    return {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg:") and v is not None}
+
+
+def apply_overrides(cfg: T, overrides: dict[str, str]) -> T:
+    """A copy of `cfg` with dotted fields replaced by parsed text values.
+
+    Raises:
+        ValueError: naming the field for an unknown name or a value of the wrong type.
+    """
+    known = {name: kind for name, kind, _, _ in _leaf_fields(cfg)}
+    for name, text in overrides.items():
+        if name not in known:
+            raise ValueError(f"unknown setting {name!r}")
+        try:
+            value = _parse(known[name], text)
+        except (ValueError, TypeError, StopIteration) as e:
+            raise ValueError(f"--{name}: cannot use {text!r} ({e})") from None
+        cfg = _replace_path(cfg, name.split("."), value)
+    return cfg
+
+
+def _replace_path(cfg: Any, path: list[str], value: Any) -> Any:
+    if len(path) == 1:
+        return dataclasses.replace(cfg, **{path[0]: value})
+    inner = _replace_path(getattr(cfg, path[0]), path[1:], value)
+    return dataclasses.replace(cfg, **{path[0]: inner})
+
+
+def to_dict(cfg: Any) -> dict:
+    """Plain nested dict of a config (tuples as lists), for config.json."""
+    return dataclasses.asdict(cfg)

@@ -1,0 +1,307 @@
+"""The SLAM system in one process: the tracker and mapper steps driven in turn.
+
+This is the paper's "one thread" variant and `dimslam run --single-process`: the same
+`Tracker` and `Mapper` objects the service processes use, called one after the other. Frames
+are fed with `Slam.add`; `Slam.finish` ends the sequence. `run_dataset` wraps it for a dataset
+and writes the outputs a user reads.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dimslam.common.camera import Camera
+from dimslam.common.datasets import ReaderOptions, open_dataset
+from dimslam.common.datasets.base import Frame
+from dimslam.common.errors import DimslamError
+from dimslam.common.evaluation import write_metrics
+from dimslam.common.field import MapConfig
+from dimslam.common.objective import LossConfig
+from dimslam.common.options import option, section, to_dict
+from dimslam.common.progress import Progress
+from dimslam.common.render import RenderConfig
+from dimslam.common.trajectory import Trajectory, write_tum
+from dimslam.common.window import FrameState, TrackingLost
+from dimslam.mapper.mapper import Mapper, MapperConfig
+from dimslam.tracker.tracker import Tracker, TrackerConfig, constant_velocity
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Every setting of a run; `config.json` records it whole."""
+
+    map: MapConfig = section(MapConfig, "the implicit map")
+    render: RenderConfig = section(RenderConfig, "ray sampling")
+    loss: LossConfig = section(LossConfig, "the window objective")
+    tracker: TrackerConfig = section(TrackerConfig, "tracking")
+    mapper: MapperConfig = section(MapperConfig, "mapping and initialization")
+    width: int = option(0, "Resize input frames to this width, intrinsics following (0: keep).")
+    seed: int = option(0, "Random seed of pixel and ray sampling.")
+
+
+PRESETS: dict[str, SlamConfig] = {
+    # The paper's numbers (design.md sections 3-5); meant for a GPU.
+    "paper": SlamConfig(),
+    # What a 2-core CPU affords: half-size frames, fewer pixels, samples and window frames.
+    "cpu": SlamConfig(
+        render=RenderConfig(n_stratified=16, n_importance=8, importance_rounds=2),
+        loss=LossConfig(smooth_blocks=64),
+        tracker=TrackerConfig(pixels=400, iters=12, local_frames=5, keyframes=4),
+        mapper=MapperConfig(
+            pixels=600, iters=25, window_keyframes=6, init_iters=300, prior_iters=60
+        ),
+        width=320,
+    ),
+    # Tests: a few seconds on a tiny synthetic sequence.
+    "tiny": SlamConfig(
+        map=MapConfig(voxel_sizes=(0.64, 0.32, 0.16), bound=(-4.0, -4.0, -4.0, 4.0, 4.0, 4.0)),
+        render=RenderConfig(n_stratified=12, n_importance=6, importance_rounds=2, far=6.0),
+        loss=LossConfig(patch_sizes=(1, 5), min_views=2, smooth_blocks=16),
+        tracker=TrackerConfig(pixels=150, iters=8, local_frames=4, keyframes=2),
+        mapper=MapperConfig(
+            pixels=256,
+            iters=8,
+            init_frames=8,
+            init_iters=120,
+            prior_iters=40,
+            window_keyframes=3,
+            mesh_voxel=0.1,
+        ),
+        width=80,
+    ),
+}
+
+
+def device_for(name: str) -> torch.device:
+    """`cpu` or `cuda:N`; without CUDA, say so once and use the CPU."""
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        log.warning("CUDA is not available: running on the CPU")
+        return torch.device("cpu")
+    return device
+
+
+class Slam:
+    """Tracking and mapping over a stream of frames."""
+
+    def __init__(self, cfg: SlamConfig, camera: Camera, device: torch.device) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.device = device
+        self.generator = torch.Generator(device).manual_seed(cfg.seed)
+        torch.manual_seed(cfg.seed)  # the grids' initialization
+        self.mapper = Mapper(
+            cfg.mapper,
+            cfg.map,
+            cfg.loss,
+            cfg.render,
+            cfg.tracker.overlap,
+            cfg.tracker.overlap_pixels,
+            camera,
+            device,
+            self.generator,
+        )
+        self.tracker = Tracker(cfg.tracker, cfg.loss, cfg.render, camera, self.generator)
+        self.frames: list[FrameState] = []
+        self.initialized = False
+        self.last_loss = math.nan
+
+    @property
+    def keyframes(self) -> list[FrameState]:
+        return [f for f in self.frames if f.keyframe]
+
+    def add(self, frame: Frame) -> list[FrameState]:
+        """Process one frame; returns the frames whose poses became known (for publishing).
+
+        Raises:
+            TrackingLost: the optimization diverged; `trajectory()` still has every pose so far.
+        """
+        rgb = torch.from_numpy(frame.rgb).to(self.device).float() / 255.0
+        if rgb.shape[:2] != (self.camera.height, self.camera.width):
+            raise DimslamError(f"frame {frame.index}: size {rgb.shape[1]}x{rgb.shape[0]} != camera")
+        if not self.initialized:
+            identity = torch.eye(4, device=self.device)
+            self.frames.append(FrameState(len(self.frames), frame.timestamp, rgb, identity))
+            if len(self.frames) < self.cfg.mapper.init_frames:
+                return []
+            return self._initialize()
+        guess = constant_velocity(self.frames[-1].T_wc, self.frames[-2].T_wc)
+        state = FrameState(len(self.frames), frame.timestamp, rgb, guess)
+        self.frames.append(state)
+        local = self.frames[-self.cfg.tracker.local_frames :]
+        result = self.tracker.track(self.mapper.field, local, self.keyframes)
+        self.last_loss = result.stats.loss
+        if self.tracker.is_keyframe(self.mapper.field, state, self.keyframes[-1]):
+            state.keyframe = True
+        if state.index % self.cfg.mapper.every == 0:
+            recent = self.frames[-self.cfg.mapper.every :]
+            self.mapper.map(recent, self.keyframes)
+        self._release()
+        return [state]
+
+    def _initialize(self) -> list[FrameState]:
+        started = time.perf_counter()
+        result = self.mapper.initialize(self.frames)
+        self.initialized = True
+        self.last_loss = result.stats.loss
+        log.info(
+            "initialized on %d frames in %.1f s (loss %.4f, warp %.4f)",
+            len(self.frames),
+            time.perf_counter() - started,
+            result.stats.loss,
+            result.stats.warp,
+        )
+        return list(self.frames)
+
+    def _release(self) -> None:
+        """Free the images no window will use again (not keyframes, not recent)."""
+        keep = max(self.cfg.tracker.local_frames, self.cfg.mapper.every)
+        for f in self.frames[:-keep]:
+            if not f.keyframe:
+                f.rgb = None
+
+    def finish(self) -> None:
+        """End of the sequence: initialize a short one, run the optional post-optimization."""
+        if not self.initialized:
+            if len(self.frames) < 3:
+                raise DimslamError(
+                    f"sequence too short: {len(self.frames)} frames, need at least 3"
+                )
+            log.info(
+                "sequence shorter than %d frames: initializing on all %d",
+                self.cfg.mapper.init_frames,
+                len(self.frames),
+            )
+            self._initialize()
+        if self.cfg.mapper.post_iters > 0:
+            self.mapper.post_optimize(self.keyframes)
+
+    def trajectory(self) -> Trajectory:
+        """Current estimates of every frame so far (none before initialization)."""
+        return _trajectory(self.frames if self.initialized else [])
+
+    def keyframe_trajectory(self) -> Trajectory:
+        """Current estimates of the keyframes."""
+        return _trajectory(self.keyframes if self.initialized else [])
+
+
+def _trajectory(frames: list[FrameState]) -> Trajectory:
+    poses = [f.T_wc.detach().cpu().double().numpy() for f in frames]
+    return Trajectory(
+        np.array([f.timestamp for f in frames], dtype=np.float64),
+        np.stack(poses) if poses else np.zeros((0, 4, 4)),
+    )
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What `run_dataset` did."""
+
+    frames: int
+    keyframes: int
+    seconds: float
+    lost: bool
+    metrics: dict
+
+
+def run_dataset(
+    source: str,
+    out_dir: Path,
+    cfg: SlamConfig,
+    device: torch.device,
+    max_frames: int | None = None,
+    layout: str | None = None,
+    mesh: bool = True,
+) -> RunSummary:
+    """Run SLAM on a dataset and write trajectory, keyframes, mesh, config, log and metrics.
+
+    Raises:
+        DimslamError: bad input. Tracking loss does not raise: the outputs so far are written
+            and `RunSummary.lost` is set.
+    """
+    from dimslam.common.report import evaluate_files, format_metrics
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out_dir / "log.txt", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname).1s %(name)s: %(message)s"))
+    logging.getLogger().addHandler(handler)
+    try:
+        options = ReaderOptions(end=max_frames, width=cfg.width or None)
+        reader = open_dataset(source, layout=layout, options=options)
+        (out_dir / "config.json").write_text(
+            json.dumps({"source": str(source), "device": str(device), **to_dict(cfg)}, indent=2)
+            + "\n"
+        )
+        camera = reader.camera
+        log.info(
+            "%s: %s layout, %d frames, %dx%d",
+            source,
+            reader.layout,
+            len(reader),
+            camera.width,
+            camera.height,
+        )
+        slam = Slam(cfg, camera, device)
+        bar = Progress(len(reader), "slam")
+        lost = False
+        started = time.perf_counter()
+        try:
+            for n, frame in enumerate(reader, 1):
+                slam.add(frame)
+                bar.update(n, loss=slam.last_loss, kf=len(slam.keyframes))
+            slam.finish()
+        except TrackingLost as e:
+            lost = True
+            log.error("tracking lost at frame %d: %s", len(slam.frames) - 1, e)
+        seconds = bar.close(kf=len(slam.keyframes))
+        traj = slam.trajectory()
+        write_tum(out_dir / "trajectory.txt", traj, header=f"dimslam estimate of {source}")
+        write_tum(out_dir / "keyframes.txt", slam.keyframe_trajectory(), header="keyframes")
+        mesh_path = None
+        if mesh and slam.initialized and not lost:
+            mesh_path = _write_mesh(slam, out_dir / "mesh.ply")
+        metrics: dict = {}
+        gt = reader.ground_truth()
+        if gt is not None and len(gt) > 0 and len(traj) >= 3:
+            has_gt_mesh = (Path(source) / "mesh.ply").is_file()
+            metrics = evaluate_files(
+                out_dir / "trajectory.txt",
+                str(source),
+                layout=layout,
+                mesh=mesh_path if has_gt_mesh else None,
+                plot=out_dir / "trajectory.png",
+            )
+            metrics["seconds"] = seconds
+            metrics["fps"] = len(traj) / max(seconds, 1e-9)
+            write_metrics(out_dir / "metrics.json", metrics)
+            print(format_metrics(metrics))
+        return RunSummary(
+            len(slam.frames), len(slam.keyframes), time.perf_counter() - started, lost, metrics
+        )
+    finally:
+        logging.getLogger().removeHandler(handler)
+        handler.close()
+
+
+def _write_mesh(slam: Slam, path: Path) -> Path | None:
+    from dimslam.common.mesh import EmptyMeshError, write_mesh
+
+    poses = torch.stack([f.T_wc for f in slam.frames])
+    try:
+        mesh = slam.mapper.extract_mesh(poses, slam.cfg.render.far)
+    except EmptyMeshError as e:
+        log.warning("no mesh written: %s", e)
+        return None
+    write_mesh(mesh, path)
+    log.info("mesh: %d vertices, %d faces -> %s", len(mesh.vertices), len(mesh.faces), path)
+    return path

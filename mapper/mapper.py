@@ -1,0 +1,254 @@
+"""The mapping side: owns the map; initialization, mapping rounds, post-optimization, mesh.
+
+Paper section 3.3 and appendix. Initialization optimizes the map and the poses of the first
+`init_frames` frames jointly (frame 0 fixed at identity). The scale of a monocular map is free,
+so a gauge pins it (design.md section 5): the map starts as a fronto-parallel plane at
+`gauge_depth` in front of frame 0, and during initialization a penalty keeps frame 0's median
+rendered depth at `gauge_depth`. No ground truth enters anywhere.
+
+A mapping round optimizes grids, decoder and the poses of its window (keyframes overlapping the
+newest frame plus the frames since the last round; frame 0 stays fixed) on random pixels.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+
+from dimslam.common import mesh as meshing
+from dimslam.common.camera import Camera
+from dimslam.common.field import Field, MapConfig
+from dimslam.common.objective import LossConfig, WindowLoss
+from dimslam.common.options import option
+from dimslam.common.render import RenderConfig, render_pixels
+from dimslam.common.window import (
+    FrameState,
+    WindowStats,
+    optimize_window,
+    overlapping_keyframes,
+    random_pixels,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Mapping budget (paper: 3000 random px, 100 iterations every 5 frames; init 13 frames)."""
+
+    every: int = option(5, "Frames between mapping rounds.")
+    pixels: int = option(3000, "Random pixels per mapping iteration.")
+    iters: int = option(100, "Adam iterations per mapping round.")
+    grid_lr: float = option(1e-3, "Learning rate of the feature grids.")
+    decoder_lr: float = option(1e-3, "Learning rate of the decoder (0: frozen after init).")
+    pose_lr: float = option(1e-2, "Learning rate of the window's pose increments.")
+    window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
+    init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
+    init_iters: int = option(1500, "Joint map and pose iterations at initialization.")
+    init_lr_scale: float = option(10.0, "Map learning rates are multiplied by this during init.")
+    prior_iters: int = option(200, "Iterations fitting the initial plane at the gauge depth.")
+    gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
+    gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
+    post_iters: int = option(0, "Map-only post-optimization iterations over all keyframes.")
+    mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
+
+
+@dataclass(frozen=True)
+class MapRound:
+    """What a mapping round (or the initialization) did."""
+
+    stats: WindowStats
+    window: tuple[int, ...]
+
+
+class Mapper:
+    """Builds and refines the implicit map."""
+
+    def __init__(
+        self,
+        cfg: MapperConfig,
+        map_cfg: MapConfig,
+        loss_cfg: LossConfig,
+        render_cfg: RenderConfig,
+        overlap: float,
+        overlap_pixels: int,
+        camera: Camera,
+        device: torch.device,
+        generator: torch.Generator,
+    ) -> None:
+        self.cfg = cfg
+        self.loss_cfg = loss_cfg
+        self.render_cfg = render_cfg
+        self.overlap = overlap
+        self.overlap_pixels = overlap_pixels
+        self.camera = camera
+        self.generator = generator
+        self.field = Field(map_cfg, device=device)
+        self.margin = max(loss_cfg.patch_sizes) // 2
+
+    def _groups(self, scale: float = 1.0, decoder: bool = True) -> list[dict]:
+        groups = [{"params": self.field.grid_parameters(), "lr": self.cfg.grid_lr * scale}]
+        if decoder and self.cfg.decoder_lr > 0:
+            groups.append(
+                {"params": self.field.decoder_parameters(), "lr": self.cfg.decoder_lr * scale}
+            )
+        return groups
+
+    def _sampler(self, n_frames: int):
+        device = self.field.bound.device
+
+        def pixels(_: int) -> tuple[torch.Tensor, torch.Tensor]:
+            return random_pixels(
+                n_frames, self.cfg.pixels, self.camera, self.margin, self.generator, device
+            )
+
+        return pixels
+
+    def fit_prior(self, first: FrameState) -> float:
+        """Fit the map to a fronto-parallel plane at the gauge depth in front of `first`.
+
+        Returns:
+            The final mean absolute depth error, map units.
+        """
+        optimizer = torch.optim.Adam(self._groups(scale=10.0))
+        device = self.field.bound.device
+        error = float("nan")
+        for _ in range(self.cfg.prior_iters):
+            _, uv = random_pixels(1, 1024, self.camera, 0, self.generator, device)
+            out = render_pixels(
+                self.field, self.camera, uv, first.T_wc, self.render_cfg, self.generator
+            )
+            loss = (out.depth - self.cfg.gauge_depth).abs().mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            error = float(loss)
+        return error
+
+    def initialize(self, frames: list[FrameState]) -> MapRound:
+        """Joint optimization of the map and the poses of `frames` (frames[0] fixed)."""
+        prior_error = self.fit_prior(frames[0])
+        log.info(
+            "initial plane at depth %.2f fitted (error %.3f)", self.cfg.gauge_depth, prior_error
+        )
+
+        def gauge(result: WindowLoss, frame: torch.Tensor) -> torch.Tensor:
+            depth0 = result.depth[frame == 0]
+            if depth0.numel() == 0:
+                return result.total.new_zeros(())
+            return self.cfg.gauge_weight * (depth0.median() / self.cfg.gauge_depth - 1) ** 2
+
+        stats = optimize_window(
+            self.field,
+            frames,
+            [i > 0 for i in range(len(frames))],
+            self.camera,
+            self._sampler(len(frames)),
+            self.cfg.init_iters,
+            self.cfg.pose_lr,
+            self.loss_cfg,
+            self.render_cfg,
+            map_groups=self._groups(scale=self.cfg.init_lr_scale),
+            generator=self.generator,
+            smooth=True,
+            extra_loss=gauge,
+            max_loss=float("inf"),
+        )
+        frames[0].keyframe = True
+        return MapRound(stats, tuple(f.index for f in frames))
+
+    def map(self, recent: list[FrameState], keyframes: list[FrameState]) -> MapRound:
+        """One mapping round on the recent frames plus keyframes overlapping the newest."""
+        in_recent = {id(f) for f in recent}
+        others = [kf for kf in keyframes if id(kf) not in in_recent]
+        chosen = overlapping_keyframes(
+            self.field,
+            recent[-1],
+            others,
+            self.camera,
+            self.cfg.window_keyframes,
+            self.overlap,
+            self.overlap_pixels,
+            self.render_cfg,
+            self.generator,
+        )
+        window = chosen + recent
+        stats = optimize_window(
+            self.field,
+            window,
+            [f.index != 0 for f in window],
+            self.camera,
+            self._sampler(len(window)),
+            self.cfg.iters,
+            self.cfg.pose_lr,
+            self.loss_cfg,
+            self.render_cfg,
+            map_groups=self._groups(),
+            generator=self.generator,
+            smooth=True,
+            max_loss=float("inf"),
+        )
+        return MapRound(stats, tuple(f.index for f in window))
+
+    def post_optimize(self, keyframes: list[FrameState], chunk: int = 20) -> WindowStats | None:
+        """Map-only refinement over all keyframes, poses fixed (paper appendix)."""
+        stats = None
+        remaining = self.cfg.post_iters
+        while remaining > 0 and len(keyframes) > 1:
+            anchor = keyframes[int(torch.randint(len(keyframes), (1,), generator=self.generator))]
+            others = [kf for kf in keyframes if kf is not anchor]
+            chosen = overlapping_keyframes(
+                self.field,
+                anchor,
+                others,
+                self.camera,
+                20,
+                self.overlap,
+                self.overlap_pixels,
+                self.render_cfg,
+                self.generator,
+            )
+            window = [anchor, *chosen]
+            if len(window) < 2:
+                window = keyframes[-min(len(keyframes), 21) :]
+            stats = optimize_window(
+                self.field,
+                window,
+                [False] * len(window),
+                self.camera,
+                self._sampler(len(window)),
+                min(chunk, remaining),
+                0.0,
+                self.loss_cfg,
+                self.render_cfg,
+                map_groups=self._groups(decoder=False),
+                generator=self.generator,
+                smooth=True,
+                max_loss=float("inf"),
+            )
+            remaining -= chunk
+        return stats
+
+    def extract_mesh(self, poses: torch.Tensor, max_depth: float, progress=None):
+        """The map's surface, culled to the estimated frustums (see `common/mesh.py`)."""
+        field = self.field
+
+        def occupancy(p: torch.Tensor) -> torch.Tensor:
+            return field.occupancy(p.to(field.bound.device)).cpu()
+
+        def color(p: torch.Tensor) -> torch.Tensor:
+            return field(p.to(field.bound.device)).rgb.cpu()
+
+        with torch.no_grad():
+            return meshing.extract_mesh(
+                occupancy,
+                color,
+                field.bound.cpu(),
+                self.cfg.mesh_voxel,
+                poses.cpu(),
+                self.camera,
+                max_depth,
+                progress=progress,
+            )
