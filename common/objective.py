@@ -119,11 +119,11 @@ def window_objective(
     if smooth and cfg.smooth_weight > 0 and cfg.smooth_blocks > 0:
         term = _smoothness(field, images, poses, camera, cfg.smooth_blocks, render_cfg, generator)
         loss = loss + cfg.smooth_weight * term.value
-        smooth_value = float(term.value)
+        smooth_value = term.value.item()
     return WindowLoss(
         total=loss,
-        warp=float(warp_value),
-        render=float(render_term.value),
+        warp=warp_value.item(),
+        render=render_term.value.item(),
         smooth=smooth_value,
         warp_count=int(count),
         depth=out.depth,

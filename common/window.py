@@ -121,7 +121,7 @@ def optimize_window(
         total = result.total
         if extra_loss is not None:
             total = total + extra_loss(result, frame)
-        value = float(total)
+        value = total.item()
         if not math.isfinite(value) or value > max_loss:
             raise TrackingLost(f"optimization diverged at iteration {it} (loss {value:.4g})")
         optimizer.zero_grad(set_to_none=True)

@@ -124,7 +124,7 @@ class Mapper:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            error = float(loss)
+            error = loss.item()
         return error
 
     def initialize(self, frames: list[FrameState]) -> MapRound:

@@ -1,0 +1,304 @@
+"""Oracle diagnostics for the SLAM core (design.md section 5c), on sequences with ground truth.
+
+Each half is checked against ground truth before blaming the whole:
+
+    python benchmarks/diagnose.py map-oracle SEQ   # map fitted to GT depth and poses; track on it
+    python benchmarks/diagnose.py single SEQ       # one frame off its pose, neighbours at GT
+    python benchmarks/diagnose.py landscape SEQ    # objective along the optical axis
+    python benchmarks/diagnose.py mapper SEQ       # map learned by the warping loss from GT poses
+    python benchmarks/diagnose.py init SEQ         # initialization: poses and depth vs GT
+    python benchmarks/diagnose.py run SEQ          # the whole system, error of every new frame
+
+SEQ is a TUM-layout sequence with `depth.txt` (exact depth: `dimslam synth` output or
+../shared/data/room0). Settings: `--preset` plus `section.field=value` overrides. Ground truth
+is used here only to measure; nothing of it reaches the system under test except where a
+command says so (the GT poses of `map-oracle` and `mapper`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+import dimslam.common  # noqa: F401  (OpenMP settings before torch work)
+from dimslam.common import losses, pose
+from dimslam.common.datasets import ReaderOptions, open_dataset
+from dimslam.common.evaluation import evaluate_trajectory
+from dimslam.common.objective import window_objective
+from dimslam.common.options import apply_overrides
+from dimslam.common.render import render_image, render_pixels
+from dimslam.common.slam import PRESETS, Slam
+from dimslam.common.trajectory import Trajectory
+from dimslam.common.window import FrameState, TrackingLost, optimize_window, random_pixels
+from dimslam.tracker.tracker import constant_velocity
+
+
+def load(args):
+    cfg = apply_overrides(PRESETS[args.preset], dict(o.split("=", 1) for o in args.set))
+    reader = open_dataset(args.seq, options=ReaderOptions(width=cfg.width or None, end=args.frames))
+    frames = list(reader)
+    return cfg, reader.camera, frames
+
+
+def gt_depths(seq: Path, frames, camera) -> list[np.ndarray]:
+    """Exact depth of each frame (TUM depth.txt, 5000 per unit), resized to the camera."""
+    lines = (seq / "depth.txt").read_text().splitlines()
+    rows = [ln.split() for ln in lines if ln and ln[0] != "#"]
+    stamps = np.array([float(r[0]) for r in rows])
+    out = []
+    for f in frames:
+        name = rows[int(np.abs(stamps - f.timestamp).argmin())][1]
+        d = cv2.imread(str(seq / name), cv2.IMREAD_UNCHANGED).astype(np.float32) / 5000.0
+        out.append(cv2.resize(d, camera.size, interpolation=cv2.INTER_NEAREST))
+    return out
+
+
+def relative_gt(frames, scale: float = 1.0) -> list[torch.Tensor]:
+    """GT poses relative to the first frame (identity), translations times `scale`."""
+    T0 = np.linalg.inv(frames[0].T_wc)
+    out = []
+    for f in frames:
+        T = T0 @ f.T_wc
+        T[:3, 3] *= scale
+        out.append(torch.from_numpy(T).float())
+    return out
+
+
+def states_at(frames, poses) -> list[FrameState]:
+    return [
+        FrameState(i, f.timestamp, torch.from_numpy(f.rgb).float() / 255, T.clone())
+        for i, (f, T) in enumerate(zip(frames, poses, strict=True))
+    ]
+
+
+def depth_error(slam: Slam, camera, T, gt: np.ndarray, scale: float = 1.0) -> str:
+    d, _ = render_image(slam.mapper.field, camera, T, slam.cfg.render)
+    e = np.abs(d.numpy() * scale - gt)
+    return f"depth error median {100 * np.median(e):.1f} cm, mean {100 * e.mean():.1f} cm"
+
+
+def pose_error(T_est: torch.Tensor, T_gt: torch.Tensor) -> str:
+    d = pose.log_se3(pose.compose(pose.invert(T_gt.double()), T_est.double()))
+    return f"{100 * d[:3].norm():.2f} cm {57.2958 * d[3:].norm():.2f} deg"
+
+
+def fit_supervised(args):
+    """A map fitted to GT depth and colour at GT poses (the oracle map)."""
+    cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera)
+    poses = relative_gt(frames)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    field, g = slam.mapper.field, slam.generator
+    opt = torch.optim.Adam([{"params": list(field.parameters()), "lr": 1e-2}])
+    rgb = torch.stack([torch.from_numpy(f.rgb).float() / 255 for f in frames])
+    depth = torch.from_numpy(np.stack(depths))
+    P = torch.stack(poses)
+    for _ in range(args.fit_iters):
+        fr, uv = random_pixels(len(frames), 2048, camera, 0, g, "cpu")
+        out = render_pixels(field, camera, uv, P[fr], cfg.render, g)
+        u, v = uv[:, 0].long(), uv[:, 1].long()
+        loss = (out.depth - depth[fr, v, u]).abs().mean() + (out.rgb - rgb[fr, v, u]).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    print(f"fitted map: {depth_error(slam, camera, poses[-1], depths[-1])} (last frame)")
+    return cfg, camera, frames, poses, slam
+
+
+def cmd_map_oracle(args) -> None:
+    """Fit the map by supervision, then track every frame on it as the system would."""
+    cfg, camera, frames, poses, slam = fit_supervised(args)
+    field = slam.mapper.field
+    states = states_at(frames, poses)
+    states[0].keyframe = True
+    tracked = states[:2]
+    for s in states[2:]:
+        s.T_wc = constant_velocity(tracked[-1].T_wc, tracked[-2].T_wc)
+        tracked.append(s)
+        kfs = [f for f in tracked if f.keyframe]
+        try:
+            slam.tracker.track(field, tracked[-cfg.tracker.local_frames :], kfs)
+        except TrackingLost as e:
+            print(f"frame {s.index}: lost ({e})")
+            return
+        if slam.tracker.is_keyframe(field, s, kfs[-1]):
+            s.keyframe = True
+        print(f"frame {s.index:3d} kf={int(s.keyframe)} error {pose_error(s.T_wc, poses[s.index])}")
+
+
+def cmd_single(args) -> None:
+    """One frame pushed off its GT pose, the 8 before it fixed at GT: does tracking return?"""
+    cfg, camera, frames, poses, slam = fit_supervised(args)
+    k = args.frame
+    states = states_at(frames, poses)[k - 8 : k + 1]
+    twist = torch.tensor([0.02, -0.01, 0.015, 0.01, -0.015, 0.005])  # ~2.7 cm, ~1.1 deg
+    states[-1].T_wc = pose.retract(poses[k], twist)
+    print(f"frame {k} start: {pose_error(states[-1].T_wc, poses[k])}")
+    uv = losses.high_gradient_pixels(states[-1].rgb, cfg.tracker.pixels, slam.generator, 5).float()
+    frame = torch.full((uv.shape[0],), len(states) - 1)
+    stats = optimize_window(
+        slam.mapper.field,
+        states,
+        [False] * (len(states) - 1) + [True],
+        camera,
+        lambda it: (frame, uv),
+        args.iters,
+        cfg.tracker.pose_lr,
+        cfg.loss,
+        cfg.render,
+    )
+    print(f"after {stats.iterations} iterations: {pose_error(states[-1].T_wc, poses[k])}")
+
+
+def cmd_landscape(args) -> None:
+    """The objective of frame K along its optical axis, anchors at GT and all shifted."""
+    cfg, camera, frames, poses, slam = fit_supervised(args)
+    k = args.frame
+    ids = [k - 3, k - 2, k - 1]
+    images = torch.stack([torch.from_numpy(frames[i].rgb).float() / 255 for i in [*ids, k]])
+    uv = losses.high_gradient_pixels(images[-1], cfg.tracker.pixels, slam.generator, 5).float()
+    frame = torch.full((uv.shape[0],), len(ids))
+    for shift in (0.0, args.shift):
+        anchors = [pose.retract(poses[i], torch.tensor([0, 0, shift, 0, 0, 0.0])) for i in ids]
+        costs = []
+        for dz in np.arange(-0.04, 0.041, 0.005):
+            T_k = pose.retract(poses[k], torch.tensor([0, 0, float(dz), 0, 0, 0]))
+            with torch.no_grad():
+                r = window_objective(
+                    slam.mapper.field,
+                    images,
+                    torch.stack([*anchors, T_k]),
+                    camera,
+                    frame,
+                    uv,
+                    cfg.loss,
+                    cfg.render,
+                )
+            costs.append((float(dz), r.total.item()))
+        best = min(costs, key=lambda c: c[1])[0]
+        row = " ".join(f"{100 * dz:+.1f}:{c:.4f}" for dz, c in costs)
+        print(f"anchors shifted {100 * shift:+.1f} cm along z: minimum at {100 * best:+.1f} cm")
+        print(f"  {row}")
+
+
+def cmd_mapper(args) -> None:
+    """Learn the map with the window objective from GT poses (scaled to the gauge)."""
+    cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera)
+    scale = cfg.mapper.gauge_depth / float(np.median(depths[0]))
+    states = states_at(frames, relative_gt(frames, scale))
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    slam.mapper.fit_prior(states[0])
+    gt0 = depths[0] * scale
+    print(f"after the plane prior: {depth_error(slam, camera, states[0].T_wc, gt0)} (map units)")
+    n = len(states)
+    for done in range(0, args.fit_iters, 50):
+        stats = optimize_window(
+            slam.mapper.field,
+            states,
+            [False] * n,
+            camera,
+            slam.mapper._sampler(n),
+            50,
+            0.0,
+            cfg.loss,
+            cfg.render,
+            map_groups=slam.mapper._groups(cfg.mapper.init_lr_scale),
+            generator=slam.generator,
+            smooth=True,
+            max_loss=float("inf"),
+        )
+        err = depth_error(slam, camera, states[0].T_wc, gt0)
+        print(f"{done + 50:4d} iterations: loss {stats.loss:.4f} (warp {stats.warp:.4f}), {err}")
+
+
+def cmd_init(args) -> None:
+    """Initialize as the system does; compare poses and frame-0 depth with GT."""
+    cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    started = time.perf_counter()
+    used = []
+    for f in frames:
+        used.append(f)
+        if slam.add(f):
+            break
+    gt = Trajectory(np.array([f.timestamp for f in used]), np.stack([f.T_wc for f in used]))
+    m = evaluate_trajectory(slam.trajectory(), gt)
+    path = np.linalg.norm(np.diff(gt.positions, axis=0), axis=1).sum()
+    print(f"initialized on {len(used)} frames in {time.perf_counter() - started:.1f} s")
+    scale = m.alignment.s
+    print(f"ATE {100 * m.ate_rmse_m:.2f} cm over a {100 * path:.1f} cm path, scale {scale:.3f}")
+    print(f"frame 0 (scaled): {depth_error(slam, camera, slam.frames[0].T_wc, depths[0], scale)}")
+
+
+def cmd_run(args) -> None:
+    """The whole system; the error of each new frame after aligning on the initialization."""
+    cfg, camera, frames = load(args)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    alignment = None
+    for n, f in enumerate(frames, 1):
+        try:
+            slam.add(f)
+        except TrackingLost as e:
+            print(f"frame {n - 1}: lost ({e})")
+            break
+        if not slam.initialized:
+            continue
+        gt = Trajectory(
+            np.array([x.timestamp for x in frames[:n]]), np.stack([x.T_wc for x in frames[:n]])
+        )
+        est = slam.trajectory()
+        m = evaluate_trajectory(est, gt)
+        if alignment is None:
+            alignment = m.alignment
+            print(f"initialized on {n} frames: ATE {100 * m.ate_rmse_m:.2f} cm")
+            continue
+        T = alignment.apply_poses(est.poses[-1:])[0]
+        drift = np.linalg.norm(T[:3, 3] - gt.poses[-1][:3, 3])
+        print(
+            f"frame {n - 1:3d} kf={int(slam.frames[-1].keyframe)} keyframes {len(slam.keyframes)} "
+            f"drift {100 * drift:6.2f} cm  ATE so far {100 * m.ate_rmse_m:6.2f} cm  "
+            f"loss {slam.last_loss:.4f}"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "command", choices=["map-oracle", "single", "landscape", "mapper", "init", "run"]
+    )
+    parser.add_argument("seq", help="TUM-layout sequence with depth.txt")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
+    parser.add_argument("--frames", type=int, default=40, help="frames to use (default: 40)")
+    parser.add_argument("--fit-iters", type=int, default=200, help="map fitting iterations")
+    parser.add_argument("--frame", type=int, default=19, help="frame of single / landscape")
+    parser.add_argument("--iters", type=int, default=40, help="iterations of single")
+    parser.add_argument("--shift", type=float, default=-0.018, help="anchor shift of landscape")
+    parser.add_argument(
+        "--set", nargs="*", action="extend", default=[], metavar="SECTION.FIELD=VALUE"
+    )
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    torch.manual_seed(0)
+    commands = {
+        "map-oracle": cmd_map_oracle,
+        "single": cmd_single,
+        "landscape": cmd_landscape,
+        "mapper": cmd_mapper,
+        "init": cmd_init,
+        "run": cmd_run,
+    }
+    commands[args.command](args)
+
+
+if __name__ == "__main__":
+    main()
