@@ -256,7 +256,7 @@ class SynthScene:
         tex = self._tex[face]
         colour = self._atlas.sample(tex, fine, u, v) * (1 - blend)
         colour += self._atlas.sample(tex, fine + 1, u, v) * blend
-        return np.minimum(colour * self._colour[face], 1), t
+        return np.minimum(colour * self._colour[face], 1).astype(np.float32, copy=False), t
 
     def _intersect(
         self, o: np.ndarray, d: list[np.ndarray], T_wc: np.ndarray, camera: Camera

@@ -98,6 +98,7 @@ def test_colour_is_view_independent(scene):
     T_a, T_b = look_at([2.5, 1.5, 1.4], target), look_at([1.6, 2.2, 1.4], target)
     rgb_a, depth_a = scene.render(T_a, camera)
     rgb_b, depth_b = scene.render(T_b, camera)
+    assert rgb_a.dtype == np.float32 and depth_a.dtype == np.float32  # as documented
     points = T_a[:3, 3] + world_rays(T_a, camera) * depth_a.reshape(-1, 1)
     p_b = (points - T_b[:3, 3]) @ T_b[:3, :3]
     u = camera.fx * p_b[:, 0] / p_b[:, 2] + camera.cx
