@@ -44,6 +44,7 @@ class TrackerConfig:
     overlap: float = option(0.7, "View overlap a keyframe needs to join the window.")
     overlap_pixels: int = option(100, "Pixels reprojected to measure overlap and flow.")
     keyframe_flow_px: float = option(10.0, "Mean reprojection flow that makes a new keyframe.")
+    keyframe_overlap: float = option(0.85, "New keyframe when the last one sees less than this.")
     max_loss: float = option(10.0, "Loss above which tracking counts as lost.")
 
 
@@ -130,7 +131,14 @@ class Tracker:
         return TrackResult(newest.index, newest.T_wc, stats, tuple(f.index for f in window))
 
     def is_keyframe(self, field: FieldFn, frame: FrameState, last_keyframe: FrameState) -> bool:
-        """Whether the mean reprojection flow from the last keyframe exceeds the threshold."""
+        """Whether `frame` becomes a keyframe.
+
+        Either the mean reprojection flow from the last keyframe exceeds `keyframe_flow_px`
+        (paper), or the last keyframe sees less than `keyframe_overlap` of the frame. The second
+        rule keeps a fixed keyframe that overlaps enough to join the tracking window: forward
+        motion loses overlap long before the flow near the image centre reaches the threshold,
+        and a window of tracked frames alone lets errors grow (docs/status.md).
+        """
         uv, uv_kf, valid = project_into(
             field,
             frame,
@@ -141,7 +149,7 @@ class Tracker:
             self.generator,
         )
         ok = valid[0]
-        if not ok.any():
-            return True  # nothing in common any more: the view changed completely
+        if float(ok.float().mean()) < self.cfg.keyframe_overlap:
+            return True
         flow = (uv_kf[0][ok] - uv[ok]).norm(dim=-1).mean()
         return float(flow) > self.cfg.keyframe_flow_px

@@ -1,0 +1,55 @@
+"""Tracker pieces that need no trained map: the motion model and the keyframe rules."""
+
+import torch
+
+from dimslam.common import pose
+from dimslam.common.camera import Camera
+from dimslam.common.field import FieldOutput
+from dimslam.common.objective import LossConfig
+from dimslam.common.render import RenderConfig
+from dimslam.common.window import FrameState
+from dimslam.tracker.tracker import Tracker, TrackerConfig, constant_velocity
+
+CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
+
+
+def wall(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
+    """A wall at z = 2 in front of the origin."""
+    return FieldOutput(torch.sigmoid(2000 * (p[:, 2] - 2.0)), torch.full_like(p, 0.5))
+
+
+def frame_at(T: torch.Tensor) -> FrameState:
+    return FrameState(0, 0.0, torch.zeros(48, 64, 3), T)
+
+
+def tracker(**kw) -> Tracker:
+    cfg = TrackerConfig(overlap_pixels=400, **kw)
+    return Tracker(cfg, LossConfig(), RenderConfig(far=4.0), CAM, torch.Generator().manual_seed(0))
+
+
+def test_constant_velocity_repeats_the_last_motion():
+    step = pose.exp_se3(torch.tensor([0.01, 0.0, 0.02, 0.0, 0.01, 0.0]))
+    before = pose.exp_se3(torch.tensor([0.3, -0.1, 0.2, 0.1, 0.0, -0.2]))
+    previous = before @ step
+    assert torch.allclose(constant_velocity(previous, before), previous @ step, atol=1e-6)
+
+
+def test_keyframe_by_flow_and_by_lost_overlap():
+    kf = frame_at(torch.eye(4))
+    t = tracker(keyframe_flow_px=10.0, keyframe_overlap=0.85)
+    assert not t.is_keyframe(wall, frame_at(torch.eye(4)), kf)
+    # 20 cm sideways at 2 m: 5 px of flow, 92% overlap -> not yet.
+    side = pose.make_pose(torch.eye(3), torch.tensor([0.2, 0.0, 0.0]))
+    assert not t.is_keyframe(wall, frame_at(side), kf)
+    # 60 cm: 15 px of flow -> keyframe by flow.
+    far = pose.make_pose(torch.eye(3), torch.tensor([0.6, 0.0, 0.0]))
+    assert t.is_keyframe(wall, frame_at(far), kf)
+    # Backing away 1 m: most of the new, wider view falls outside the keyframe (overlap about
+    # (2/3)^2) while the flow stays under the threshold: a keyframe by the overlap rule only.
+    back = pose.make_pose(torch.eye(3), torch.tensor([0.0, 0.0, -1.0]))
+    assert tracker(keyframe_flow_px=100.0, keyframe_overlap=0.85).is_keyframe(
+        wall, frame_at(back), kf
+    )
+    assert not tracker(keyframe_flow_px=100.0, keyframe_overlap=0.0).is_keyframe(
+        wall, frame_at(back), kf
+    )
