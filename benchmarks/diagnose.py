@@ -22,11 +22,13 @@ import logging
 import time
 from pathlib import Path
 
+import dimslam.common  # noqa: F401, I001  (its OpenMP setting must precede torch's import)
+
+# isort: split
 import cv2
 import numpy as np
 import torch
 
-import dimslam.common  # noqa: F401  (OpenMP settings before torch work)
 from dimslam.common import losses, pose
 from dimslam.common.datasets import ReaderOptions, open_dataset
 from dimslam.common.evaluation import evaluate_trajectory
@@ -123,13 +125,14 @@ def cmd_map_oracle(args) -> None:
         tracked.append(s)
         kfs = [f for f in tracked if f.keyframe]
         try:
-            slam.tracker.track(field, tracked[-cfg.tracker.local_frames :], kfs)
+            res = slam.tracker.track(field, tracked[-cfg.tracker.local_frames :], kfs)
         except TrackingLost as e:
             print(f"frame {s.index}: lost ({e})")
             return
         if slam.tracker.is_keyframe(field, s, kfs[-1]):
             s.keyframe = True
-        print(f"frame {s.index:3d} kf={int(s.keyframe)} error {pose_error(s.T_wc, poses[s.index])}")
+        error = pose_error(s.T_wc, poses[s.index])
+        print(f"frame {s.index:3d} kf={int(s.keyframe)} error {error} window {res.window}")
 
 
 def cmd_single(args) -> None:

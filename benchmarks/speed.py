@@ -1,0 +1,327 @@
+"""Speed of the SLAM core per preset: ms per iteration, fps of a short run, memory.
+
+    python benchmarks/speed.py                                # paper, cpu, tiny on the CPU
+    python benchmarks/speed.py --presets cpu,tiny --json out/speed.json
+    python benchmarks/speed.py --device cuda:0 --full-paper --full-init --max-iters 0
+
+Frames are the built-in synthetic scene, rendered in memory at the preset's width (320x240
+where the preset keeps the input size). Step timings: the system is initialized cheaply
+(`--init-iters`; accuracy is not the point), its frames all become keyframes so that keyframes
+can join the windows, and each `Tracker.track` / `Mapper.map` call (at most `--max-iters`
+iterations) is timed and divided by the iterations it ran; medians over `--repeats`. The
+preset's own initialization time is estimated from the per-iteration times. Full run:
+`Slam.add` over `--frames` frames with the preset as it is except for the cheap initialization
+(`--full-init` keeps the preset's: 600 iterations of the cpu preset take minutes on a CPU);
+the paper preset's run is skipped on the CPU unless `--full-paper`. Tracking loss is recorded,
+not raised. MB = 2**20 bytes; the peak RSS is the process's so far (presets run in turn).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import dimslam.common  # noqa: F401  (OMP_WAIT_POLICY must be set before torch loads OpenMP)
+
+# isort: split
+import numpy as np
+import torch
+
+from dimslam.common.camera import Camera
+from dimslam.common.datasets.base import Frame
+from dimslam.common.options import apply_overrides
+from dimslam.common.slam import PRESETS, Slam, SlamConfig, device_for
+from dimslam.common.synth import FPS, SynthScene, default_camera
+from dimslam.common.window import FrameState, TrackingLost
+from dimslam.tracker.tracker import constant_velocity
+
+log = logging.getLogger("speed")
+MB = 2**20
+
+
+def machine(device: torch.device) -> dict:
+    """What the figures were measured on."""
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    for line in cpuinfo.read_text().splitlines() if cpuinfo.is_file() else []:
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
+    info = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "device": str(device),
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+def render(cfg: SlamConfig, count: int, seed: int) -> tuple[Camera, list[np.ndarray]]:
+    """`count` frames of the synthetic path at the preset's size, `(H, W, 3)` float32 in [0, 1]."""
+    width = cfg.width or 320
+    camera = default_camera(width, round(width * 3 / 4))
+    scene = SynthScene(seed)
+    return camera, [scene.render(T, camera)[0] for T in scene.path(count)]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _state(slam: Slam, rgb: np.ndarray, guess: torch.Tensor) -> FrameState:
+    n = len(slam.frames)
+    return FrameState(n, n / FPS, torch.from_numpy(rgb).to(slam.device), guess)
+
+
+def _median_ms(samples: list[float]) -> float | None:
+    return 1e3 * statistics.median(samples) if samples else None
+
+
+def time_steps(
+    cfg: SlamConfig, camera: Camera, images: list[np.ndarray], device: torch.device, repeats: int
+) -> dict:
+    """Per-iteration times of initialization, tracking and mapping (medians, milliseconds).
+
+    The initialization frames all become keyframes, so that keyframes can join the windows.
+    """
+    slam = Slam(cfg, camera, device)
+    for rgb in images[: cfg.mapper.init_frames]:
+        slam.frames.append(_state(slam, rgb, torch.eye(4, device=device)))
+    prior_iters = max(1, cfg.mapper.prior_iters)
+    slam.mapper.fit_prior(slam.frames[0])  # warm-up: first calls pay one-off costs
+    _sync(device)
+    start = time.perf_counter()
+    slam.mapper.fit_prior(slam.frames[0])
+    _sync(device)
+    prior_s = time.perf_counter() - start
+    start = time.perf_counter()
+    slam.mapper.initialize(slam.frames)  # fits the prior again, then the joint optimization
+    _sync(device)
+    init_s = (time.perf_counter() - start - prior_s) / max(1, cfg.mapper.init_iters)
+    slam.initialized = True
+    for f in slam.frames:
+        f.keyframe = True
+    lost: list[str] = []
+    track, track_window = [], 0
+    for rgb in images[cfg.mapper.init_frames : cfg.mapper.init_frames + repeats]:
+        guess = constant_velocity(slam.frames[-1].T_wc, slam.frames[-2].T_wc)
+        slam.frames.append(_state(slam, rgb, guess))
+        _sync(device)
+        start = time.perf_counter()
+        try:
+            local = slam.frames[-cfg.tracker.local_frames :]
+            result = slam.tracker.track(slam.mapper.field, local, slam.keyframes)
+        except TrackingLost as e:
+            lost.append(f"tracking frame {len(slam.frames) - 1}: {e}")
+            slam.frames.pop()
+            continue
+        _sync(device)
+        track.append((time.perf_counter() - start) / max(1, result.stats.iterations))
+        track_window = len(result.window)
+    mapping, map_window = [], 0
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        try:
+            done = slam.mapper.map(slam.frames[-cfg.mapper.every :], slam.keyframes)
+        except TrackingLost as e:
+            lost.append(f"mapping: {e}")
+            continue
+        _sync(device)
+        mapping.append((time.perf_counter() - start) / max(1, done.stats.iterations))
+        map_window = len(done.window)
+    return {
+        "prior_ms_per_iter": 1e3 * prior_s / prior_iters,
+        "init_ms_per_iter": 1e3 * init_s,
+        "track_ms_per_iter": _median_ms(track),
+        "track_iters": cfg.tracker.iters,
+        "track_window": track_window,
+        "map_ms_per_iter": _median_ms(mapping),
+        "map_iters": cfg.mapper.iters,
+        "map_window": map_window,
+        "map_mb": slam.mapper.field.memory_bytes() / MB,
+        "lost": lost,
+    }
+
+
+def full_run(
+    cfg: SlamConfig, camera: Camera, images: list[np.ndarray], device: torch.device
+) -> dict:
+    """`Slam.add` over the frames with the preset as it is.
+
+    Returns:
+        `fps` over every frame fed (initialization included) and `tracked_fps` over the frames
+        after initialization; on tracking loss, over the frames fed until then.
+    """
+    frames = [Frame(i, i / FPS, (rgb * 255 + 0.5).astype(np.uint8)) for i, rgb in enumerate(images)]
+    slam = Slam(cfg, camera, device)
+    lost, fed, init_s, init_n = None, 0, None, 0
+    start = time.perf_counter()
+    try:
+        for frame in frames:
+            fed += 1
+            slam.add(frame)
+            if init_s is None and slam.initialized:
+                init_s = time.perf_counter() - start
+                init_n = fed
+        slam.finish()
+    except TrackingLost as e:
+        lost = f"frame {fed - 1}: {e}"
+    _sync(device)
+    seconds = time.perf_counter() - start
+    tracked = None
+    if init_s is not None and fed > init_n:
+        tracked = (fed - init_n) / (seconds - init_s)
+    return {
+        "frames": fed,
+        "seconds": seconds,
+        "fps": fed / seconds,
+        "init_seconds": init_s,
+        "tracked_fps": tracked,
+        "keyframes": len(slam.keyframes),
+        "lost": lost,
+    }
+
+
+def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
+    """Every figure of one preset."""
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    cfg = PRESETS[name]
+    init = {"mapper.init_iters": str(args.init_iters), "mapper.prior_iters": str(args.init_iters)}
+    cheap = apply_overrides(cfg, init)
+    capped = {}
+    if args.max_iters > 0:
+        capped = {
+            "tracker.iters": str(min(cfg.tracker.iters, args.max_iters)),
+            "mapper.iters": str(min(cfg.mapper.iters, args.max_iters)),
+        }
+    full = not (name == "paper" and device.type == "cpu" and not args.full_paper)
+    count = max(cfg.mapper.init_frames + args.repeats, args.frames if full else 0)
+    camera, images = render(cfg, count, args.seed)
+    log.info("%s: %dx%d, timing steps", name, camera.width, camera.height)
+    steps = time_steps(apply_overrides(cheap, capped), camera, images, device, args.repeats)
+    estimate = (
+        steps["prior_ms_per_iter"] * cfg.mapper.prior_iters
+        + steps["init_ms_per_iter"] * cfg.mapper.init_iters
+    ) / 1e3
+    result = {"preset": name, "size": [camera.width, camera.height], **steps}
+    result["init_seconds_estimate"] = estimate
+    result["full_run"] = None
+    if full:
+        log.info("%s: full run on %d frames", name, args.frames)
+        run_cfg = cfg if args.full_init else cheap
+        result["full_run"] = full_run(run_cfg, camera, images[: args.frames], device)
+        result["full_run"]["init_iters"] = run_cfg.mapper.init_iters
+        result["full_run"]["prior_iters"] = run_cfg.mapper.prior_iters
+    result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if device.type == "cuda":
+        result["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / MB
+    return result
+
+
+def _rounded(value: object) -> object:
+    if isinstance(value, float):
+        return round(value, 3)
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rounded(v) for v in value]
+    return value
+
+
+def table(results: list[dict]) -> str:
+    """The figures as a Markdown table (windows in frames, in brackets)."""
+
+    def num(value: float | None, fmt: str = ".1f") -> str:
+        return "-" if value is None else format(value, fmt)
+
+    rows = [
+        "| preset | size | init ms/it | track ms/it | map ms/it | init s (est.) | run fps "
+        "| fps after init | map MB | peak RSS MB | lost |",
+        "|" + "---|" * 11,
+    ]
+    for r in results:
+        run = r["full_run"] or {}
+        lost = r["lost"] + ([run["lost"]] if run.get("lost") else [])
+        rows.append(
+            f"| {r['preset']} | {r['size'][0]}x{r['size'][1]} | {num(r['init_ms_per_iter'])} "
+            f"| {num(r['track_ms_per_iter'])} ({r['track_window']}) "
+            f"| {num(r['map_ms_per_iter'])} ({r['map_window']}) "
+            f"| {num(r['init_seconds_estimate'])} | {num(run.get('fps'), '.2f')} "
+            f"| {num(run.get('tracked_fps'), '.2f')} | {r['map_mb']:.1f} "
+            f"| {r['peak_rss_mb']:.0f} | {'; '.join(lost) or 'no'} |"
+        )
+    return "\n".join(rows)
+
+
+class _Help(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as it is, and every option's default."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=_Help)
+    parser.add_argument("--presets", default="paper,cpu,tiny", help="comma-separated presets")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda:N")
+    parser.add_argument("--threads", type=int, help="torch.set_num_threads (None: torch's choice)")
+    parser.add_argument("--repeats", type=int, default=3, help="timed calls per step (median)")
+    parser.add_argument("--frames", type=int, default=30, help="frames of the full run")
+    parser.add_argument(
+        "--init-iters",
+        type=int,
+        default=5,
+        help="init and prior iterations (step timings; full run unless --full-init)",
+    )
+    parser.add_argument(
+        "--max-iters",
+        type=int,
+        default=10,
+        help="cap on the iterations of each timed tracking or mapping call (0: the preset's)",
+    )
+    parser.add_argument(
+        "--full-init",
+        action="store_true",
+        help="initialize the full run with the preset's own iterations, not --init-iters (slow)",
+    )
+    parser.add_argument(
+        "--full-paper",
+        action="store_true",
+        help="also do the paper preset's full run on the CPU (slow)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="synthetic scene seed")
+    parser.add_argument("--json", type=Path, help="write the JSON here instead of stdout")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
+    names = [p.strip() for p in args.presets.split(",") if p.strip()]
+    unknown = [p for p in names if p not in PRESETS]
+    if unknown:
+        parser.error(f"unknown presets {unknown}; known: {', '.join(PRESETS)}")
+    if min(args.repeats, args.init_iters) < 1 or args.frames < 3:
+        parser.error("need --repeats >= 1, --init-iters >= 1 and --frames >= 3")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = device_for(args.device)
+    report = {"machine": machine(device), "presets": [bench(n, args, device) for n in names]}
+    text = json.dumps(_rounded(report), indent=2)
+    if args.json:
+        args.json.write_text(text + "\n")
+    else:
+        print(text)
+    print(table(report["presets"]), file=sys.stderr if args.json is None else sys.stdout)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
