@@ -479,8 +479,10 @@ def _sample(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> np.n
     return np.asarray(points, dtype=np.float64)
 
 
-def frustum_mask(points: np.ndarray, T_wc: np.ndarray, camera: Camera) -> np.ndarray:
-    """Which points some camera sees: in front of it (z > 0) and inside its image.
+def frustum_mask(
+    points: np.ndarray, T_wc: np.ndarray, camera: Camera, max_depth: float = math.inf
+) -> np.ndarray:
+    """Which points some camera sees: in front of it (0 < z <= max_depth), inside its image.
 
     No occlusion test: a point behind a wall but inside the frustum counts as seen.
 
@@ -488,6 +490,8 @@ def frustum_mask(points: np.ndarray, T_wc: np.ndarray, camera: Camera) -> np.nda
         points: `(P, 3)` world points.
         T_wc: `(N, 4, 4)` camera-to-world poses.
         camera: the intrinsics of every pose.
+        max_depth: far limit of the frustums (the evaluation protocol uses none; mesh
+            extraction does).
 
     Returns:
         `(P,)` bool.
@@ -495,6 +499,7 @@ def frustum_mask(points: np.ndarray, T_wc: np.ndarray, camera: Camera) -> np.nda
     check_shape("points", points, (None, 3))
     check_shape("T_wc", T_wc, (None, 4, 4))
     # float32 is ample for a visibility test (sub-mm at 10 m) and halves the work.
+    T_wc = T_wc.detach().cpu().numpy() if isinstance(T_wc, torch.Tensor) else T_wc
     T_cw = pose.invert(torch.from_numpy(np.ascontiguousarray(T_wc, dtype=np.float64))).float()
     # Frames in a golden-ratio stride order rather than in time: the first chunks then span the
     # whole trajectory, so most seen points drop out early (any order gives the same mask).
@@ -510,7 +515,7 @@ def frustum_mask(points: np.ndarray, T_wc: np.ndarray, camera: Camera) -> np.nda
         frame += len(T_chunk)
         p_c = pose.transform_points(T_chunk, p_w[remaining])  # (F, P', 3)
         uv, z = camera.project(p_c)
-        visible = ((z > 0) & camera.inside(uv)).any(dim=0)
+        visible = ((z > 0) & (z <= max_depth) & camera.inside(uv)).any(dim=0)
         seen[remaining[visible]] = True
         remaining = remaining[~visible]
     return seen.numpy()

@@ -35,6 +35,7 @@ from skimage import measure
 from dimslam.common import pose
 from dimslam.common.camera import Camera
 from dimslam.common.errors import DimslamError
+from dimslam.common.evaluation import frustum_mask
 from dimslam.common.shapes import check_shape
 
 log = logging.getLogger(__name__)
@@ -43,9 +44,6 @@ FieldFn = Callable[[torch.Tensor], torch.Tensor]
 
 MAX_GRID_CELLS = 512**3
 """Largest marching-cubes grid: its float32 volume alone takes ~0.5 GB."""
-
-# Frustum culling projects (frames x vertices) at a time: bounded memory whatever the path length.
-_CULL_CHUNK_ELEMENTS = 1_000_000
 
 
 class EmptyMeshError(DimslamError):
@@ -130,7 +128,7 @@ def extract_mesh(
     verts = origin.numpy() + verts.astype(np.float64) * voxel
 
     level_faces = len(faces)
-    faces = faces[_seen(verts, T_wc, camera, max_depth)[faces].all(axis=1)]
+    faces = faces[frustum_mask(verts, T_wc, camera, max_depth)[faces].all(axis=1)]
     if len(faces) == 0:
         raise EmptyMeshError(
             f"no surface to mesh: none of the {level_faces} faces of the level set lies in a "
@@ -215,24 +213,3 @@ def _call(fn: FieldFn, points: torch.Tensor, shape: tuple, name: str) -> np.ndar
     if not np.isfinite(out).all():
         raise DimslamError(f"the map's {name} is not finite (NaN/inf): has the map diverged?")
     return out
-
-
-def _seen(points: np.ndarray, T_wc: torch.Tensor, camera: Camera, max_depth: float) -> np.ndarray:
-    """`(P,)` bool: points some camera has at `0 < z <= max_depth` and inside its image.
-
-    `evaluation.frustum_mask` with a depth limit (which the evaluation protocol does not use).
-    """
-    T_cw = pose.invert(T_wc).float()
-    p_w = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
-    seen = torch.zeros(len(p_w), dtype=torch.bool)
-    remaining = torch.arange(len(p_w))
-    frame = 0
-    # Points once seen drop out of later tests, so the cost falls as the surface is covered.
-    while frame < len(T_cw) and len(remaining):
-        T_chunk = T_cw[frame : frame + max(1, _CULL_CHUNK_ELEMENTS // len(remaining))]
-        frame += len(T_chunk)
-        uv, z = camera.project(pose.transform_points(T_chunk, p_w[remaining]))
-        visible = ((z > 0) & (z <= max_depth) & camera.inside(uv)).any(dim=0)
-        seen[remaining[visible]] = True
-        remaining = remaining[~visible]
-    return seen.numpy()
