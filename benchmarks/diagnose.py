@@ -122,6 +122,7 @@ def cmd_map_oracle(args) -> None:
     tracked = states[:2]
     for s in states[2:]:
         s.T_wc = constant_velocity(tracked[-1].T_wc, tracked[-2].T_wc)
+        guess = pose_error(s.T_wc, poses[s.index])
         tracked.append(s)
         kfs = [f for f in tracked if f.keyframe]
         try:
@@ -132,7 +133,10 @@ def cmd_map_oracle(args) -> None:
         if slam.tracker.is_keyframe(field, s, kfs[-1]):
             s.keyframe = True
         error = pose_error(s.T_wc, poses[s.index])
-        print(f"frame {s.index:3d} kf={int(s.keyframe)} error {error} window {res.window}")
+        print(
+            f"frame {s.index:3d} kf={int(s.keyframe)} guess {guess} -> {error} "
+            f"loss {res.stats.history[0]:.4f} -> {res.stats.loss:.4f} window {res.window}"
+        )
 
 
 def cmd_single(args) -> None:
