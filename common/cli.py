@@ -222,9 +222,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         progress=lambda i, n: bar.update(i + 1),
     )
     bar.close()
-    # The SLAM core does not exist yet (issue 3): the ground truth stands in for its output so
-    # that reading, trajectory I/O and evaluation run end to end on the same files.
-    print("2/3 SLAM core not built yet: using the ground-truth trajectory and mesh as the estimate")
+    # The SLAM core does not track reliably yet (docs/status.md): the ground truth stands in
+    # for its output so that reading, trajectory I/O and evaluation run end to end.
+    print(
+        "2/3 SLAM core not accurate yet: using the ground-truth trajectory and mesh as the estimate"
+    )
     reader = open_dataset(scene, options=ReaderOptions())
     traj_path = out / "trajectory.txt"
     write_tum(traj_path, reader.ground_truth(), header="demo: ground truth standing in for SLAM")
