@@ -148,6 +148,17 @@ def log_se3(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([v, w], dim=-1)
 
 
+def normalize(T: torch.Tensor) -> torch.Tensor:
+    """Project the rotation part of `(..., 4, 4)` poses back onto SO(3) (via the quaternion).
+
+    Products of float32 poses drift off SO(3), and `invert` relies on R^T being the inverse:
+    a pose that is composed again and again (the motion model) must be normalized, or the
+    error compounds (it tripled every frame and blew up tracking after ~15 frames).
+    """
+    check_shape("T", T, (..., 4, 4))
+    return make_pose(quat_to_matrix(_matrix_to_quat(T[..., :3, :3])), T[..., :3, 3])
+
+
 def retract(T: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
     """Apply a body-frame increment: `T @ exp(xi)`. The optimizers' pose update."""
     return compose(T, exp_se3(xi))

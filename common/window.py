@@ -132,7 +132,7 @@ def optimize_window(
         stats.loss, stats.warp, stats.render = value, result.warp, result.render
         stats.smooth, stats.warp_count = result.smooth, result.warp_count
     with torch.no_grad():
-        final = current()
+        final = pose.normalize(current())
     if not torch.isfinite(final).all():
         raise TrackingLost("poses became non-finite")
     for f, T in zip(frames, final, strict=True):

@@ -61,7 +61,7 @@ class TrackResult:
 def constant_velocity(previous: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
     """The pose after `previous` if the motion from `before` to `previous` repeats."""
     motion = pose.compose(pose.invert(before), previous)
-    return pose.compose(previous, motion)
+    return pose.normalize(pose.compose(previous, motion))
 
 
 class Tracker:

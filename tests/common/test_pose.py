@@ -98,3 +98,25 @@ def test_float32_and_batch_shapes_preserved():
 def test_shape_errors_are_clear():
     with pytest.raises(ValueError, match=r"T_ab: expected shape \(\.\.\., 4, 4\)"):
         pose.invert(torch.zeros(3, 3))
+
+
+def test_normalize_keeps_repeated_composition_on_se3():
+    # The motion model composes a pose with itself again and again: in float32 without
+    # normalization the rotation drifts off SO(3) geometrically (invert assumes R^T = R^-1).
+    step = pose.exp_se3(torch.tensor([0.01, 0.0, 0.015, 0.004, 0.006, -0.003]))
+    before, previous = torch.eye(4), step
+    for _ in range(60):
+        motion = pose.compose(pose.invert(before), previous)
+        before, previous = previous, pose.normalize(pose.compose(previous, motion))
+    R = previous[:3, :3]
+    assert torch.allclose(R @ R.T, torch.eye(3), atol=1e-5)
+    expected = torch.linalg.matrix_power(step.double(), 61)
+    assert torch.allclose(previous.double(), expected, atol=1e-3)
+
+
+def test_normalize_projects_a_perturbed_rotation():
+    R = pose.exp_so3(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
+    T = pose.make_pose(R * 1.01 + 0.001, torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64))
+    N = pose.normalize(T)
+    assert torch.allclose(N[:3, :3] @ N[:3, :3].T, torch.eye(3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(N[:3, :3], R, atol=2e-3) and torch.equal(N[:3, 3], T[:3, 3])
