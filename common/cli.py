@@ -209,7 +209,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     scene = out / "scene"
     width, height = args.size
     print(
-        f"1/3 rendering the built-in synthetic scene ({args.frames} frames {width}x{height}, "
+        f"1/2 rendering the built-in synthetic scene ({args.frames} frames {width}x{height}, "
         f"seed {args.seed}) into {scene}"
     )
     bar = Progress(args.frames, "render")
@@ -222,21 +222,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
         progress=lambda i, n: bar.update(i + 1),
     )
     bar.close()
-    # The SLAM core does not track reliably yet (docs/status.md): the ground truth stands in
-    # for its output so that reading, trajectory I/O and evaluation run end to end.
-    print(
-        "2/3 SLAM core not accurate yet: using the ground-truth trajectory and mesh as the estimate"
-    )
-    reader = open_dataset(scene, options=ReaderOptions())
-    traj_path = out / "trajectory.txt"
-    write_tum(traj_path, reader.ground_truth(), header="demo: ground truth standing in for SLAM")
-    print("3/3 evaluating against the ground truth")
-    result = evaluate_files(
-        traj_path, str(scene), mesh=scene / "mesh.ply", plot=out / "trajectory.png"
-    )
-    write_metrics(out / "metrics.json", result)
-    print(format_metrics(result))
-    print(f"outputs in {out}: trajectory.txt, metrics.json, trajectory.png")
+    print(f"2/2 running SLAM ({args.preset} preset) and evaluating against the ground truth")
+    summary = run_dataset(str(scene), out, PRESETS[args.preset], torch.device("cpu"))
+    print(f"{summary.frames} frames, {summary.keyframes} keyframes in {summary.seconds:.1f} s")
+    written = [f.name for f in sorted(out.iterdir()) if f.is_file()]
+    print(f"outputs in {out}: {', '.join(written)}")
+    if summary.lost:
+        print("error: tracking lost; the trajectory so far is in trajectory.txt", file=sys.stderr)
+        return 3
     return 0
 
 
@@ -322,15 +315,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "demo",
         help="the main job on the built-in default scene (no data, no GPU)",
-        description="Render the built-in synthetic scene, run on it and evaluate the "
-        "result; writes trajectory.txt, metrics.json and trajectory.png.",
+        description="Render the built-in synthetic scene, run SLAM on it and evaluate the "
+        "result against its ground truth; writes the outputs of `dimslam run` (trajectory.txt, "
+        "metrics.json, trajectory.png, ...) next to the rendered scene.",
     )
     p.add_argument(
         "--out", type=Path, default=DEMO_OUT, help=f"output folder (default: {DEMO_OUT})"
     )
-    p.add_argument("--frames", type=int, default=150, help="frames to render (default: 150)")
-    p.add_argument("--size", type=_size, default=(320, 240), help="WIDTHxHEIGHT (default: 320x240)")
+    p.add_argument("--frames", type=int, default=60, help="frames to render (default: 60)")
+    p.add_argument("--size", type=_size, default=(160, 120), help="WIDTHxHEIGHT (default: 160x120)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default: 0)")
+    p.add_argument(
+        "--preset", choices=sorted(PRESETS), default="tiny", help="SLAM settings (default: tiny)"
+    )
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser(
