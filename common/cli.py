@@ -22,7 +22,7 @@ from dimslam.common.evaluation import write_metrics
 from dimslam.common.options import add_config_arguments, apply_overrides, overrides_from_args
 from dimslam.common.progress import Progress
 from dimslam.common.report import evaluate_files, format_metrics
-from dimslam.common.slam import PRESETS, SlamConfig, device_for, run_dataset
+from dimslam.common.slam import PRESETS, RunSummary, SlamConfig, device_for, run_dataset
 from dimslam.common.synth import write_sequence
 from dimslam.common.trajectory import write_tum
 
@@ -188,10 +188,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         layout=args.layout,
         mesh=not args.no_mesh,
     )
-    print(
-        f"{summary.frames} frames, {summary.keyframes} keyframes in {summary.seconds:.1f} s; "
-        f"outputs in {args.out}"
-    )
+    return finish_run(summary, args.out)
+
+
+def finish_run(summary: RunSummary, out: Path) -> int:
+    """Say what a run did and where its outputs are; exit 3 if tracking was lost."""
+    print(f"{summary.frames} frames, {summary.keyframes} keyframes in {summary.seconds:.1f} s")
+    written = [f.name for f in sorted(out.iterdir()) if f.is_file()]
+    print(f"outputs in {out}: {', '.join(written)}")
     if summary.lost:
         print("error: tracking lost; the trajectory so far is in trajectory.txt", file=sys.stderr)
         return 3
@@ -224,13 +228,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     bar.close()
     print(f"2/2 running SLAM ({args.preset} preset) and evaluating against the ground truth")
     summary = run_dataset(str(scene), out, PRESETS[args.preset], torch.device("cpu"))
-    print(f"{summary.frames} frames, {summary.keyframes} keyframes in {summary.seconds:.1f} s")
-    written = [f.name for f in sorted(out.iterdir()) if f.is_file()]
-    print(f"outputs in {out}: {', '.join(written)}")
-    if summary.lost:
-        print("error: tracking lost; the trajectory so far is in trajectory.txt", file=sys.stderr)
-        return 3
-    return 0
+    return finish_run(summary, out)
 
 
 # ---------------------------------------------------------------------------------------------

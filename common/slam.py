@@ -24,10 +24,12 @@ from dimslam.common.datasets.base import Frame
 from dimslam.common.errors import DimslamError
 from dimslam.common.evaluation import write_metrics
 from dimslam.common.field import MapConfig
+from dimslam.common.mesh import EmptyMeshError, write_mesh
 from dimslam.common.objective import LossConfig
 from dimslam.common.options import apply_overrides, option, section, to_dict
 from dimslam.common.progress import Progress
 from dimslam.common.render import RenderConfig
+from dimslam.common.report import evaluate_files, format_metrics
 from dimslam.common.trajectory import Trajectory, write_tum
 from dimslam.common.window import FrameState, TrackingLost
 from dimslam.mapper.mapper import Mapper, MapperConfig
@@ -252,8 +254,6 @@ def run_dataset(
         DimslamError: bad input. Tracking loss does not raise: the outputs so far are written
             and `RunSummary.lost` is set.
     """
-    from dimslam.common.report import evaluate_files, format_metrics
-
     out_dir.mkdir(parents=True, exist_ok=True)
     handler = logging.FileHandler(out_dir / "log.txt", mode="w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname).1s %(name)s: %(message)s"))
@@ -317,8 +317,6 @@ def run_dataset(
 
 
 def _write_mesh(slam: Slam, path: Path) -> Path | None:
-    from dimslam.common.mesh import EmptyMeshError, write_mesh
-
     poses = torch.stack([f.T_wc for f in slam.frames])
     try:
         mesh = slam.mapper.extract_mesh(poses, slam.cfg.render.far)
