@@ -19,10 +19,10 @@ from dimslam.common import logs
 from dimslam.common.datasets import LAYOUTS, ReaderOptions, open_dataset
 from dimslam.common.errors import DimslamError
 from dimslam.common.evaluation import write_metrics
-from dimslam.common.options import add_config_arguments, apply_overrides, overrides_from_args
 from dimslam.common.progress import Progress
 from dimslam.common.report import evaluate_files, format_metrics
-from dimslam.common.slam import PRESETS, RunSummary, SlamConfig, device_for, run_dataset
+from dimslam.common.service import add_slam_options, slam_config
+from dimslam.common.slam import PRESETS, RunSummary, device_for, run_dataset
 from dimslam.common.synth import write_sequence
 from dimslam.common.trajectory import write_tum
 
@@ -62,12 +62,24 @@ def add_reader_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="intrinsics file 'fx fy cx cy [k1 k2 p1 p2 [k3]]' overriding the dataset's own",
     )
+    g.add_argument(
+        "--fps",
+        type=float,
+        default=ReaderOptions.fps,
+        help="frame rate of sources whose frames carry no timestamp: image folders, videos "
+        f"without them (default: {ReaderOptions.fps:g})",
+    )
 
 
-def reader_options(args: argparse.Namespace):
-
+def reader_options(args: argparse.Namespace) -> ReaderOptions:
+    """The `ReaderOptions` parsed by `add_reader_options`."""
     return ReaderOptions(
-        stride=args.stride, start=args.start, end=args.end, width=args.width, calib=args.calib
+        stride=args.stride,
+        start=args.start,
+        end=args.end,
+        width=args.width,
+        calib=args.calib,
+        fps=args.fps,
     )
 
 
@@ -165,14 +177,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------------------------
 # run
-
-
-def slam_config(args: argparse.Namespace):
-    """The preset named by `--preset` with the user's per-field overrides applied."""
-    try:
-        return apply_overrides(PRESETS[args.preset], overrides_from_args(args))
-    except ValueError as e:
-        raise DimslamError(str(e)) from None
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -337,15 +341,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("dataset", help="dataset folder or video (any layout `dimslam dataset` reads)")
     p.add_argument("--out", type=Path, required=True, help="output folder (created)")
-    p.add_argument(
-        "--preset", choices=sorted(PRESETS), default="cpu", help="settings (default: cpu)"
-    )
     p.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's)")
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--layout", choices=sorted(LAYOUTS), help="dataset layout (default: detected)")
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
-    add_config_arguments(p, SlamConfig(), "settings")
+    add_slam_options(p)
     p.set_defaults(func=cmd_run)
     return parser
 

@@ -7,11 +7,22 @@ the same session and transport options so a deployment is described the same way
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Protocol
+
+import torch
+import zenoh
 
 from dimslam.common import logs
+from dimslam.common.errors import DimslamError
+from dimslam.common.options import add_config_arguments, apply_overrides, overrides_from_args
+from dimslam.common.slam import PRESETS, SlamConfig, device_for
+from dimslam.common.transport import Keys, Stop, TransportConfig, open_session
+
+log = logging.getLogger(__name__)
 
 DEFAULT_SESSION = "default"
 
@@ -66,6 +77,76 @@ def add_compute_options(p: argparse.ArgumentParser) -> None:
         help="CPU threads for this process (default: torch's choice), so two processes "
         "on one machine do not fight over cores",
     )
+
+
+def add_slam_options(p: argparse.ArgumentParser, default_preset: str = "cpu") -> None:
+    """`--preset` plus one `--section.field` override per setting."""
+    p.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default=default_preset,
+        help=f"settings (default: {default_preset}); tracker and mapper must use the same",
+    )
+    add_config_arguments(p, SlamConfig(), "settings")
+
+
+def slam_config(args: argparse.Namespace) -> SlamConfig:
+    """The preset named by `--preset` with the user's per-field overrides applied."""
+    try:
+        return apply_overrides(PRESETS[args.preset], overrides_from_args(args))
+    except ValueError as e:
+        raise DimslamError(str(e)) from None
+
+
+def transport_config(args: argparse.Namespace) -> TransportConfig:
+    """The transport options parsed by `add_transport_options`."""
+    return TransportConfig(
+        session=args.session,
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        zenoh_config=args.zenoh_config,
+    )
+
+
+def compute_device(args: argparse.Namespace) -> torch.device:
+    """`--gpu N` as `cuda:N` (the CPU, said once, without CUDA); `--threads` applied."""
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    return device_for(f"cuda:{args.gpu}" if args.gpu is not None else "cpu")
+
+
+class Service(Protocol):
+    """A process loop: `run()` until the stream ends or a stop signal, then `close()`."""
+
+    def run(self) -> int: ...
+
+    def close(self) -> None: ...
+
+
+def run_service(
+    args: argparse.Namespace,
+    role: str,
+    build: Callable[[SlamConfig, torch.device, zenoh.Session, Keys, Stop], Service],
+    flush: Callable[[Service], None],
+) -> int:
+    """Open the session, build the process's loop, run it, flush its outputs, exit cleanly.
+
+    SIGINT/SIGTERM set the stop event: the loop finishes its current step, `flush` writes the
+    outputs, the liveliness token is undeclared and the `with` block closes the session, so
+    the process exits within a few seconds and never hangs (zenoh.md trap 1).
+    """
+    cfg = slam_config(args)
+    device = compute_device(args)
+    transport = transport_config(args)
+    stop = Stop()
+    with stop.on_signals(), open_session(transport, role) as session:
+        service = build(cfg, device, session, Keys(transport.session), stop)
+        log.info("%s up in session %r on %s", role, transport.session, device)
+        try:
+            return service.run()
+        finally:
+            flush(service)
+            service.close()
 
 
 def not_built_yet(

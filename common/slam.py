@@ -8,6 +8,7 @@ and writes the outputs a user reads.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -189,11 +190,7 @@ class Slam:
         return list(self.frames)
 
     def _release(self) -> None:
-        """Free the images no window will use again (not keyframes, not recent)."""
-        keep = max(self.cfg.tracker.local_frames, self.cfg.mapper.every)
-        for f in self.frames[:-keep]:
-            if not f.keyframe:
-                f.rgb = None
+        release_images(self.frames, self.cfg)
 
     def finish(self) -> None:
         """End of the sequence: initialize a short one, run the optional post-optimization."""
@@ -213,19 +210,34 @@ class Slam:
 
     def trajectory(self) -> Trajectory:
         """Current estimates of every frame so far (none before initialization)."""
-        return _trajectory(self.frames if self.initialized else [])
+        return trajectory_of(self.frames if self.initialized else [])
 
     def keyframe_trajectory(self) -> Trajectory:
         """Current estimates of the keyframes."""
-        return _trajectory(self.keyframes if self.initialized else [])
+        return trajectory_of(self.keyframes if self.initialized else [])
 
 
-def _trajectory(frames: list[FrameState]) -> Trajectory:
+def release_images(frames: list[FrameState], cfg: SlamConfig) -> None:
+    """Free the images no window will use again (not keyframes, not the newest frames)."""
+    keep = max(cfg.tracker.local_frames, cfg.mapper.every)
+    for f in frames[:-keep]:
+        if not f.keyframe:
+            f.rgb = None
+
+
+def trajectory_of(frames: list[FrameState]) -> Trajectory:
+    """The current pose estimates of `frames` as a trajectory."""
     poses = [f.T_wc.detach().cpu().double().numpy() for f in frames]
     return Trajectory(
         np.array([f.timestamp for f in frames], dtype=np.float64),
         np.stack(poses) if poses else np.zeros((0, 4, 4)),
     )
+
+
+def map_digest(cfg: SlamConfig) -> str:
+    """Fingerprint of the settings a tracker and a mapper must share to exchange maps."""
+    shared = {"map": to_dict(cfg.map), "render": to_dict(cfg.render), "width": cfg.width}
+    return hashlib.sha256(json.dumps(shared, sort_keys=True).encode()).hexdigest()[:16]
 
 
 @dataclass(frozen=True)

@@ -88,20 +88,25 @@ def read_tum(path: str | Path) -> Trajectory:
     return Trajectory(data[:, 0].copy(), T.numpy())
 
 
+def tum_lines(traj: Trajectory) -> list[str]:
+    """One TUM line `timestamp tx ty tz qx qy qz qw` per pose, in order, without comments."""
+    T = torch.from_numpy(np.ascontiguousarray(traj.poses, dtype=np.float64))
+    q = pose.matrix_to_quat(T[:, :3, :3]).numpy()
+    t = traj.poses[:, :3, 3]
+    return [
+        f"{traj.timestamps[i]:.6f} "
+        + " ".join(f"{x:.7f}" for x in t[i])
+        + " "
+        + " ".join(f"{x:.7f}" for x in q[i])
+        for i in range(len(traj))
+    ]
+
+
 def write_tum(path: str | Path, traj: Trajectory, header: str | None = None) -> None:
     """Write a TUM trajectory file (parent folders created), one line per pose."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    T = torch.from_numpy(np.ascontiguousarray(traj.poses, dtype=np.float64))
-    q = pose.matrix_to_quat(T[:, :3, :3]).numpy()
-    t = traj.poses[:, :3, 3]
     lines = [f"# {header}"] if header else []
     lines.append("# timestamp tx ty tz qx qy qz qw")
-    for i in range(len(traj)):
-        lines.append(
-            f"{traj.timestamps[i]:.6f} "
-            + " ".join(f"{x:.7f}" for x in t[i])
-            + " "
-            + " ".join(f"{x:.7f}" for x in q[i])
-        )
+    lines.extend(tum_lines(traj))
     path.write_text("\n".join(lines) + "\n")

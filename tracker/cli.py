@@ -2,20 +2,53 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
-from dimslam.common.service import add_compute_options, not_built_yet
+from dimslam.common import logs
+from dimslam.common.cli import run_main
+from dimslam.common.service import (
+    add_compute_options,
+    add_slam_options,
+    add_transport_options,
+    run_service,
+)
+from dimslam.tracker.service import TrackerService
 
 DESCRIPTION = (
     "Tracking process of the dimslam service: subscribes to camera frames, optimizes the poses of "
     "its window on high-gradient pixels against the newest map snapshot from the mapper, and "
-    "publishes each pose as soon as it is solved."
+    "publishes each pose as soon as it is solved. It exits when the camera's stream ends."
 )
 
 
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dimslam-tracker", description=DESCRIPTION)
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="folder for trajectory_online.txt (every pose as first published), written at exit",
+    )
+    add_compute_options(p)
+    add_transport_options(p)
+    add_slam_options(p)
+    return p
+
+
+def serve(args: argparse.Namespace) -> int:
+    def flush(service: TrackerService) -> None:
+        if args.out is not None:
+            service.write(args.out)
+
+    return run_service(args, "tracker", TrackerService, flush)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return not_built_yet("dimslam-tracker", DESCRIPTION, argv, add_compute_options)
+    args = build_parser().parse_args(argv)
+    logs.configure(args.verbose, args.quiet)
+    return run_main(serve, args)
 
 
 if __name__ == "__main__":

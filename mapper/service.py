@@ -1,0 +1,300 @@
+"""The mapping process's loop: batches in, map snapshots and refined poses out, queries answered.
+
+The steps are the single-process ones (`Mapper.initialize`, `Mapper.map`,
+`Mapper.post_optimize`, `Mapper.extract_mesh`); this module adds the exchange:
+
+- Batch 0 holds the first frames: the mapper initializes on them and publishes snapshot 1.
+- Every later batch brings the frames since the previous one, with their tracked poses and
+  keyframe flags. All batches pending when a round starts are taken together (a mapper that
+  falls behind maps everything new in its next round: the stated backpressure policy); the
+  round runs on the newest `every` frames plus overlapping keyframes, exactly as in one process.
+- After each round: a versioned snapshot (map tensors, refined poses of every keyframe and of
+  the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
+- Queries: `query/map` (the newest snapshot), `query/trajectory` (TUM text of the final poses:
+  keyframes as refined, every other frame re-anchored to the keyframe before it), `query/mesh`
+  (PLY bytes, extracted between rounds).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import zenoh
+
+from dimslam.common import pose
+from dimslam.common.camera import Camera
+from dimslam.common.mesh import EmptyMeshError
+from dimslam.common.messages import (
+    EndOfStream,
+    MappingBatch,
+    MapSnapshot,
+    MessageError,
+    PoseMessage,
+    message_type,
+)
+from dimslam.common.slam import SlamConfig, map_digest, release_images
+from dimslam.common.trajectory import Trajectory, format_tum, write_tum
+from dimslam.common.transport import BATCH_QUEUE, Inbox, Keys, Presence, Rejects, Stop, publisher
+from dimslam.common.window import FrameState
+from dimslam.mapper.mapper import Mapper
+
+log = logging.getLogger(__name__)
+
+WAIT_S = 0.5
+
+
+class MapperService:
+    """One mapping process on one zenoh session."""
+
+    def __init__(
+        self,
+        cfg: SlamConfig,
+        device: torch.device,
+        session: zenoh.Session,
+        keys: Keys,
+        stop: Stop,
+        exit_at_end: bool = False,
+    ) -> None:
+        self.cfg = cfg
+        self.exit_at_end = exit_at_end
+        self.device = device
+        self.stop = stop
+        self.digest = map_digest(cfg)
+        self.generator = torch.Generator(device).manual_seed(cfg.seed)
+        torch.manual_seed(cfg.seed)  # the grids' initialization, as in one process
+        self.mapper: Mapper | None = None
+        self.camera: Camera | None = None
+        self.frames: list[FrameState] = []
+        # Non-keyframe seq -> (anchor keyframe, pose relative to it), for the final trajectory.
+        self.anchors: dict[int, tuple[FrameState, torch.Tensor]] = {}
+        self.version = 0
+        self.rounds = 0
+        self.ended = False
+        self.snapshot_bytes: bytes | None = None
+        self.rejects = Rejects()
+        self.round_seconds: list[float] = []
+        self.batches_in = Inbox(BATCH_QUEUE, "mapping batches")
+        self.mesh_queries: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
+        stop.watch(self.batches_in)
+        self.map_pub = publisher(session, keys.map, lossless=True)
+        self.keyframe_pub = publisher(session, keys.keyframes, lossless=False)
+        # Keep references to everything declared (zenoh.md trap 4).
+        self.declared = [
+            session.declare_subscriber(keys.mapping, self.batches_in.callback),
+            session.declare_queryable(keys.query("map"), self._answer_map),
+            session.declare_queryable(keys.query("trajectory"), self._answer_trajectory),
+            session.declare_queryable(keys.query("mesh"), self.mesh_queries.put),
+        ]
+        self.presence = Presence(session, keys, "mapper", self._peer_changed)
+
+    def _peer_changed(self, role: str, alive: bool) -> None:
+        if role == "tracker" and not alive:
+            log.warning("the tracker is gone: the map is kept and queries are still answered")
+
+    # -- queries (zenoh's thread: cheap answers only; the mesh waits for the main loop) ------
+
+    def _answer_map(self, query: zenoh.Query) -> None:
+        with query:  # dropping the query ends it for the asker (zenoh.md trap 3)
+            if self.snapshot_bytes is None:
+                query.reply_err(b"no map yet")
+            else:
+                query.reply(query.key_expr, self.snapshot_bytes)
+
+    def _answer_trajectory(self, query: zenoh.Query) -> None:
+        with query:
+            text = format_tum(self.trajectory(), header="dimslam final poses")
+            query.reply(query.key_expr, text.encode())
+
+    def _answer_meshes(self) -> None:
+        while True:
+            try:
+                query = self.mesh_queries.get_nowait()
+            except queue.Empty:
+                return
+            with query:
+                try:
+                    query.reply(query.key_expr, self.mesh_ply())
+                except EmptyMeshError as e:
+                    query.reply_err(str(e).encode())
+
+    # -- main loop --------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Map until a stop signal (or the end of the stream with `exit_at_end`)."""
+        while not self.stop:
+            self._answer_meshes()
+            payload = self.batches_in.get(WAIT_S)
+            if payload is None:
+                continue
+            batches = []
+            for p in [payload, *self.batches_in.drain()]:
+                try:
+                    if message_type(p) == EndOfStream.TYPE:
+                        self.ended = True
+                    else:
+                        batches.append(MappingBatch.from_bytes(p))
+                except MessageError as e:
+                    self.rejects("mapping", e)
+            if batches:
+                self._step(batches)
+            if self.ended:
+                self._finish()
+                if self.exit_at_end:
+                    break
+                self.ended = False
+        self._answer_meshes()
+        log.info(
+            "%d rounds (median %.1f s), map version %d, %d keyframes, %d rejected messages",
+            self.rounds,
+            float(np.median(self.round_seconds)) if self.round_seconds else 0.0,
+            self.version,
+            len(self.keyframes),
+            self.rejects.count,
+        )
+        return 0
+
+    @property
+    def keyframes(self) -> list[FrameState]:
+        return [f for f in self.frames if f.keyframe]
+
+    def _step(self, batches: list[MappingBatch]) -> None:
+        started = time.perf_counter()
+        for batch in batches:
+            if batch.round == 0:
+                self._reset(batch.camera)
+            elif self.mapper is None:
+                self.rejects("mapping", MessageError(f"batch {batch.round} before initialization"))
+                continue
+            elif batch.camera != self.camera:
+                self.rejects("mapping", MessageError(f"batch {batch.round}: another camera"))
+                continue
+            for f in batch.frames:
+                rgb = torch.from_numpy(f.rgb).to(self.device).float() / 255.0
+                T = torch.from_numpy(f.T_wc).float().to(self.device)
+                self.frames.append(FrameState(f.seq, f.timestamp, rgb, T, f.keyframe))
+        if self.mapper is None or not self.frames:
+            return
+        if self.version == 0:
+            result = self.mapper.initialize(self.frames)
+            log.info("initialized on %d frames (loss %.4f)", len(self.frames), result.stats.loss)
+            window = self.frames
+        else:
+            recent = self.frames[-self.cfg.mapper.every :]
+            self.mapper.map(recent, self.keyframes)
+            window = recent
+        self.rounds += 1
+        self.round_seconds.append(time.perf_counter() - started)
+        self._anchor(window)
+        release_images(self.frames, self.cfg)
+        self._publish(batches[-1].round, window)
+
+    def _reset(self, camera: Camera) -> None:
+        if self.mapper is not None:
+            log.info("a new stream starts: the previous map is dropped")
+        self.camera = camera
+        self.mapper = Mapper(
+            self.cfg.mapper,
+            self.cfg.map,
+            self.cfg.loss,
+            self.cfg.render,
+            self.cfg.tracker.overlap,
+            self.cfg.tracker.overlap_pixels,
+            camera,
+            self.device,
+            self.generator,
+        )
+        self.frames = []
+        self.anchors = {}
+        self.version = 0
+
+    def _anchor(self, frames: list[FrameState]) -> None:
+        """Record each non-keyframe's pose relative to the keyframe before it."""
+        keyframes = self.keyframes
+        for f in frames:
+            if f.keyframe:
+                self.anchors.pop(f.index, None)
+                continue
+            before = [kf for kf in keyframes if kf.index <= f.index]
+            if before:
+                kf = before[-1]
+                self.anchors[f.index] = (kf, pose.compose(pose.invert(kf.T_wc), f.T_wc))
+
+    def _publish(self, round_: int, window: list[FrameState]) -> None:
+        assert self.mapper is not None
+        self.version += 1
+        refined = {f.index: f for f in [*self.keyframes, *window]}
+        snap = MapSnapshot(
+            self.version,
+            round_,
+            self.digest,
+            {k: v.detach().cpu().numpy() for k, v in self.mapper.field.state_dict().items()},
+            {s: f.T_wc.detach().cpu().double().numpy() for s, f in refined.items()},
+            tuple(kf.index for kf in self.keyframes),
+        )
+        self.snapshot_bytes = snap.to_bytes()
+        self.map_pub.put(self.snapshot_bytes)
+        for kf in self.keyframes:
+            T = kf.T_wc.detach().cpu().double().numpy()
+            msg = PoseMessage(kf.index, kf.timestamp, T, True, self.version)
+            self.keyframe_pub.put(msg.to_bytes())
+
+    def _finish(self) -> None:
+        if self.mapper is None:
+            log.warning("end of stream before any map was built")
+            return
+        if self.cfg.mapper.post_iters > 0:
+            self.mapper.post_optimize(self.keyframes)
+            self._publish(self.rounds, [])
+        log.info("end of stream: map version %d, %d frames", self.version, len(self.frames))
+
+    # -- outputs ----------------------------------------------------------------------------
+
+    def trajectory(self) -> Trajectory:
+        """Final poses: keyframes as refined, other frames re-anchored to their keyframe."""
+        poses, stamps = [], []
+        for f in self.frames if self.version > 0 else []:
+            T = f.T_wc
+            if not f.keyframe and f.index in self.anchors:
+                kf, rel = self.anchors[f.index]
+                T = pose.normalize(pose.compose(kf.T_wc, rel))
+            poses.append(T.detach().cpu().double().numpy())
+            stamps.append(f.timestamp)
+        if not poses:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array(stamps), np.stack(poses))
+
+    def mesh_ply(self) -> bytes:
+        """The current mesh as PLY bytes; raises EmptyMeshError without a surface."""
+        if self.mapper is None or self.version == 0:
+            raise EmptyMeshError("no map yet")
+        poses = torch.stack([f.T_wc for f in self.frames])
+        mesh = self.mapper.extract_mesh(poses, self.cfg.render.far)
+        return mesh.export(file_type="ply", encoding="binary")
+
+    def write(self, out: Path, mesh: bool) -> None:
+        """Flush the outputs: final trajectory, keyframes, map checkpoint and the mesh if asked."""
+        out.mkdir(parents=True, exist_ok=True)
+        traj = self.trajectory()
+        write_tum(out / "trajectory.txt", traj, header="dimslam final poses")
+        kf = [i for i, f in enumerate(self.frames) if f.keyframe]
+        write_tum(
+            out / "keyframes.txt",
+            Trajectory(traj.timestamps[kf], traj.poses[kf]) if len(traj) else traj,
+            header="keyframes",
+        )
+        if self.snapshot_bytes is not None:
+            (out / "map.msgpack").write_bytes(self.snapshot_bytes)
+        if mesh and self.mapper is not None and self.version > 0:
+            try:
+                (out / "mesh.ply").write_bytes(self.mesh_ply())
+            except EmptyMeshError as e:
+                log.warning("no mesh written: %s", e)
+        log.info("outputs written to %s", out)
+
+    def close(self) -> None:
+        self.presence.close()

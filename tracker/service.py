@@ -1,0 +1,359 @@
+"""The tracking process's loop: frames in, poses out, mapping batches to the mapper.
+
+The steps are the single-process ones (`Tracker.track`, `Tracker.is_keyframe`,
+`constant_velocity`); what this module adds is the exchange:
+
+- Until the map exists, frames are collected; the first `init_frames` go to the mapper as
+  batch 0, and the tracker waits for snapshot 1 (frames keep queueing meanwhile).
+- Then every frame is tracked against the newest snapshot held, and its pose published at once.
+  Every `every` frames, the frames since the last batch (images, poses, keyframe flags) go to
+  the mapper. The tracker never waits for a mapping round.
+- Snapshots are swapped in between frames. The refined poses they carry replace the tracker's
+  estimates; frames tracked after the snapshot's newest frame move with it (the correction of
+  that frame is applied to them), so the motion model does not see a jump.
+- The mapper's liveliness token is watched: if it dies, the tracker says so once and keeps
+  tracking on the last map.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import zenoh
+
+from dimslam.common import pose
+from dimslam.common.camera import Camera
+from dimslam.common.field import Field
+from dimslam.common.messages import (
+    EndOfStream,
+    FrameMessage,
+    MappingBatch,
+    MappingFrame,
+    MapSnapshot,
+    MessageError,
+    PoseMessage,
+    message_type,
+)
+from dimslam.common.progress import Progress
+from dimslam.common.slam import SlamConfig, map_digest, release_images
+from dimslam.common.trajectory import Trajectory, write_tum
+from dimslam.common.transport import FRAME_QUEUE, Inbox, Keys, Presence, Rejects, Stop, publisher
+from dimslam.common.window import FrameState, TrackingLost
+from dimslam.tracker.tracker import Tracker, constant_velocity
+
+log = logging.getLogger(__name__)
+
+WAIT_S = 0.5
+"""How long a loop waits on its inbox before checking the stop event again."""
+
+
+@dataclass
+class TrackerStats:
+    """Counters a user reads at exit (and the benchmark)."""
+
+    frames: int = 0
+    tracked: int = 0
+    skipped_live: int = 0
+    snapshots: int = 0
+    track_seconds: list[float] = field(default_factory=list)
+
+
+class TrackerService:
+    """One tracking process on one zenoh session."""
+
+    def __init__(
+        self,
+        cfg: SlamConfig,
+        device: torch.device,
+        session: zenoh.Session,
+        keys: Keys,
+        stop: Stop,
+    ) -> None:
+        self.cfg = cfg
+        self.device = device
+        self.keys = keys
+        self.stop = stop
+        self.digest = map_digest(cfg)
+        self.generator = torch.Generator(device).manual_seed(cfg.seed)
+        self.field = Field(cfg.map, device=device).requires_grad_(False)
+        self.camera: Camera | None = None
+        self.source_camera: Camera | None = None
+        self.tracker: Tracker | None = None
+        self.frames: list[FrameState] = []
+        self.online: dict[int, tuple[float, np.ndarray]] = {}
+        self.pending: list[FrameState] = []
+        self.outbox: list[bytes] = []
+        self.map_version = 0
+        self.round = 0
+        self.init_sent = False
+        self.stats = TrackerStats()
+        self.rejects = Rejects()
+        self.mapper_gone_logged = False
+        self.frames_in = Inbox(FRAME_QUEUE, "frames")
+        self.maps_in = Inbox(1, "map snapshots")  # newest wins
+        stop.watch(self.frames_in, self.maps_in)
+        # Keep references to everything declared (zenoh.md trap 4).
+        self.subscribers = [
+            session.declare_subscriber(keys.frames, self.frames_in.callback),
+            session.declare_subscriber(keys.map, self.maps_in.callback),
+        ]
+        self.pose_pub = publisher(session, keys.poses, lossless=False)
+        self.mapping_pub = publisher(session, keys.mapping, lossless=True)
+        self.presence = Presence(session, keys, "tracker", self._peer_changed)
+        self.session = session
+
+    # -- liveliness -------------------------------------------------------------------------
+
+    def _peer_changed(self, role: str, alive: bool) -> None:
+        if role != "mapper":
+            return
+        if not alive:
+            log.warning(
+                "the mapper is gone: tracking goes on with map version %d", self.map_version
+            )
+        else:
+            log.info("a mapper is present")
+
+    # -- main loop --------------------------------------------------------------------------
+
+    @property
+    def initialized(self) -> bool:
+        return self.map_version > 0
+
+    def run(self) -> int:
+        """Track until the stream ends or a stop signal; returns the exit code (3: lost)."""
+        bar = Progress(None, "tracker")
+        code = 0
+        try:
+            while not self.stop:
+                self._apply_snapshots()
+                self._flush_outbox()
+                if self.init_sent and not self.initialized:
+                    self.maps_in_wait()
+                    continue
+                payload = self.frames_in.get(WAIT_S)
+                if payload is None:
+                    continue
+                if self._handle(payload):
+                    break
+                bar.update(self.stats.frames, kf=sum(f.keyframe for f in self.frames))
+        except TrackingLost as e:
+            log.error("tracking lost: %s", e)
+            code = 3
+        finally:
+            bar.close()
+            self._end_of_stream()
+        return code
+
+    def maps_in_wait(self) -> None:
+        payload = self.maps_in.get(WAIT_S)
+        if payload is not None:
+            self.maps_in.put(payload)  # applied at the top of the loop, between frames
+
+    def _handle(self, payload: bytes) -> bool:
+        """Process one frames-topic message; True at the end of the stream."""
+        try:
+            kind = message_type(payload)
+            if kind == EndOfStream.TYPE:
+                end = EndOfStream.from_bytes(payload)
+                log.info("end of stream after %d frames", end.frames)
+                return True
+            msg = FrameMessage.from_bytes(payload)
+            rgb = self._prepare(msg)
+        except MessageError as e:
+            self.rejects("frames", e)
+            return False
+        if msg.live and len(self.frames_in) > 0:
+            self.stats.skipped_live += 1  # a newer live frame is waiting: this one is stale
+            return False
+        self.stats.frames += 1
+        self._process(msg.seq, msg.timestamp, rgb)
+        return False
+
+    def _prepare(self, msg: FrameMessage) -> torch.Tensor:
+        """The frame on the device at the configured width; the first frame fixes the camera."""
+        if self.source_camera is None:
+            self.source_camera = msg.camera
+            cam = msg.camera
+            if self.cfg.width and self.cfg.width != cam.width:
+                cam = cam.resized(self.cfg.width)
+            self.camera = cam
+            self.tracker = Tracker(
+                self.cfg.tracker, self.cfg.loss, self.cfg.render, cam, self.generator
+            )
+            log.info("camera %dx%d, tracking at %dx%d", *msg.camera.size, *cam.size)
+        elif msg.camera != self.source_camera:
+            raise MessageError(f"frame {msg.seq}: camera {msg.camera} differs from the stream's")
+        rgb = msg.rgb
+        assert self.camera is not None
+        if rgb.shape[1] != self.camera.width:
+            rgb = cv2.resize(rgb, self.camera.size, interpolation=cv2.INTER_AREA)
+        return torch.from_numpy(rgb).to(self.device).float() / 255.0
+
+    def _process(self, seq: int, timestamp: float, rgb: torch.Tensor) -> None:
+        if not self.initialized:
+            self.frames.append(FrameState(seq, timestamp, rgb, torch.eye(4, device=self.device)))
+            if len(self.frames) >= self.cfg.mapper.init_frames:
+                self._send_batch(self.frames)
+                self.init_sent = True
+            return
+        assert self.tracker is not None
+        guess = constant_velocity(self.frames[-1].T_wc, self.frames[-2].T_wc)
+        if not torch.isfinite(guess).all():
+            raise TrackingLost(f"frame {seq}: the motion model gives a non-finite pose")
+        state = FrameState(seq, timestamp, rgb, guess)
+        self.frames.append(state)
+        local = self.frames[-self.cfg.tracker.local_frames :]
+        keyframes = [f for f in self.frames if f.keyframe]
+        started = time.perf_counter()
+        try:
+            self.tracker.track(self.field, local, keyframes)
+        except TrackingLost:
+            self.frames.pop()
+            raise
+        self.stats.tracked += 1
+        self.stats.track_seconds.append(time.perf_counter() - started)
+        if self.tracker.is_keyframe(self.field, state, keyframes[-1]):
+            state.keyframe = True
+        self._publish_pose(state)
+        self.pending.append(state)
+        if seq % self.cfg.mapper.every == 0 or len(self.pending) >= self.cfg.mapper.every:
+            self._send_batch(self.pending)
+            self.pending = []
+        release_images(self.frames, self.cfg)
+
+    def _publish_pose(self, state: FrameState) -> None:
+        T = state.T_wc.detach().cpu().double().numpy()
+        self.online.setdefault(state.index, (state.timestamp, T))
+        msg = PoseMessage(state.index, state.timestamp, T, state.keyframe, self.map_version)
+        self.pose_pub.put(msg.to_bytes())
+
+    def _send_batch(self, frames: list[FrameState]) -> None:
+        assert self.camera is not None
+        items = tuple(
+            MappingFrame(
+                f.index,
+                f.timestamp,
+                (f.rgb * 255.0).round().byte().cpu().numpy(),
+                f.T_wc.detach().cpu().double().numpy(),
+                f.keyframe,
+            )
+            for f in frames
+        )
+        self.outbox.append(MappingBatch(self.round, items, self.camera).to_bytes())
+        self.round += 1
+        self._flush_outbox()
+
+    def _flush_outbox(self) -> None:
+        """Send held batches once a mapper listens: a put with no subscriber is lost."""
+        if self.outbox and self.mapping_pub.matching_status.matching:
+            for payload in self.outbox:
+                self.mapping_pub.put(payload)
+            self.outbox.clear()
+
+    # -- snapshots --------------------------------------------------------------------------
+
+    def _apply_snapshots(self) -> None:
+        payload = self.maps_in.get(0.0)
+        if payload is None:
+            return
+        try:
+            snap = MapSnapshot.from_bytes(payload)
+        except MessageError as e:
+            self.rejects("map", e)
+            return
+        if snap.config != self.digest:
+            self.rejects(
+                "map",
+                MessageError(f"snapshot {snap.version} has other map settings ({snap.config})"),
+            )
+            return
+        if snap.version <= self.map_version:
+            return
+        state = {k: torch.from_numpy(v) for k, v in snap.state.items()}
+        self.field.load_state_dict(state)
+        first = not self.initialized
+        self._apply_poses(snap)
+        self.map_version = snap.version
+        self.stats.snapshots += 1
+        log.debug("map version %d (round %d) swapped in", snap.version, snap.round)
+        if first:
+            for f in self.frames:
+                self._publish_pose(f)
+
+    def _apply_poses(self, snap: MapSnapshot) -> None:
+        by_seq = {f.index: f for f in self.frames}
+        known = [s for s in snap.poses if s in by_seq]
+        if not known:
+            return
+        newest = max(known)
+        old = by_seq[newest].T_wc
+        new = torch.from_numpy(snap.poses[newest]).float().to(self.device)
+        correction = pose.compose(new, pose.invert(old))
+        for s in known:
+            by_seq[s].T_wc = torch.from_numpy(snap.poses[s]).float().to(self.device)
+        for f in self.frames:
+            if f.index > newest:
+                f.T_wc = pose.normalize(pose.compose(correction, f.T_wc))
+        for s in snap.keyframes:
+            if s in by_seq:
+                by_seq[s].keyframe = True
+
+    # -- end --------------------------------------------------------------------------------
+
+    def _end_of_stream(self) -> None:
+        """Flush the last batch, tell the mapper and the pose subscribers the stream ended."""
+        if self.initialized and self.pending:
+            self._send_batch(self.pending)
+            self.pending = []
+        elif not self.init_sent and len(self.frames) >= 3:
+            log.info("stream shorter than %d frames: initializing on all", len(self.frames))
+            self._send_batch(self.frames)
+            self.init_sent = True
+        if self.init_sent and not self.initialized and not self.stop:
+            log.info("waiting for the mapper's initialization to publish the first poses")
+            while not self.stop and not self.initialized:
+                self._flush_outbox()
+                self.maps_in_wait()
+                self._apply_snapshots()
+        end = EndOfStream(len(self.online)).to_bytes()
+        self.outbox.append(end)
+        self._flush_outbox()
+        if self.outbox:
+            log.warning("no mapper listening: %d mapping messages not delivered", len(self.outbox))
+        self.pose_pub.put(end)
+        log.info(
+            "%d frames, %d tracked, %d poses published, %d snapshots, %d rejected, "
+            "%d live frames skipped, %d dropped",
+            self.stats.frames,
+            self.stats.tracked,
+            len(self.online),
+            self.stats.snapshots,
+            self.rejects.count,
+            self.stats.skipped_live,
+            self.frames_in.dropped,
+        )
+
+    def online_trajectory(self) -> Trajectory:
+        """Every pose as it was first published."""
+        seqs = sorted(self.online)
+        if not seqs:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(
+            np.array([self.online[s][0] for s in seqs]),
+            np.stack([self.online[s][1] for s in seqs]),
+        )
+
+    def write(self, out: Path) -> None:
+        out.mkdir(parents=True, exist_ok=True)
+        write_tum(out / "trajectory_online.txt", self.online_trajectory(), header="as published")
+        log.info("wrote %s", out / "trajectory_online.txt")
+
+    def close(self) -> None:
+        self.presence.close()
