@@ -49,7 +49,7 @@ def now_ns() -> int:
 
 def pack_array(a: np.ndarray) -> dict:
     """An array as a msgpack map; the dtype must be in the allow-list."""
-    a = np.ascontiguousarray(a)
+    a = np.asarray(a)  # not ascontiguousarray: it turns a 0-d array into shape (1,)
     if a.dtype.name not in _DTYPES:
         raise ValueError(f"dtype {a.dtype} cannot be sent (allowed: {sorted(_DTYPES)})")
     return {"dtype": a.dtype.name, "shape": list(a.shape), "data": a.tobytes()}
@@ -72,7 +72,7 @@ def unpack_array(
     if not isinstance(obj, Mapping) or set(obj) != {"dtype", "shape", "data"}:
         raise MessageError(f"{name}: not an array")
     kind, dims, data = obj["dtype"], obj["shape"], obj["data"]
-    if kind not in _DTYPES or (dtype is not None and kind != dtype):
+    if not isinstance(kind, str) or kind not in _DTYPES or (dtype is not None and kind != dtype):
         raise MessageError(f"{name}: dtype {kind!r} not accepted (want {dtype or sorted(_DTYPES)})")
     if (
         not isinstance(dims, list)
@@ -87,10 +87,11 @@ def unpack_array(
         raise MessageError(f"{name}: shape {tuple(dims)} does not match {shape}")
     if not isinstance(data, bytes):
         raise MessageError(f"{name}: data is not bytes")
-    count = 1
+    count, extent = 1, 1
     for d in dims:
         count *= d
-        if count > MAX_MESSAGE_BYTES:
+        extent *= max(d, 1)  # an empty array with absurd other dims must not reach numpy either
+        if extent > MAX_MESSAGE_BYTES:
             raise MessageError(f"{name}: shape {tuple(dims)} too large")
     if count * np.dtype(kind).itemsize != len(data):
         raise MessageError(f"{name}: {len(data)} bytes for shape {tuple(dims)} {kind}")
@@ -135,8 +136,9 @@ def _encode(type_name: str, body: dict) -> bytes:
     return msgpack.packb({"v": SCHEMA, "type": type_name, **body}, use_bin_type=True)
 
 
-def _decode(payload: bytes | bytearray | memoryview, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
+def _decode(payload: bytes | bytearray | memoryview) -> dict:
     """Check size, unpack, and check the schema version; returns the body."""
+    max_bytes = MAX_MESSAGE_BYTES  # read at call time, like unpack_array does
     if len(payload) > max_bytes:
         raise MessageError(f"payload of {len(payload)} bytes exceeds the limit of {max_bytes}")
     try:
@@ -153,7 +155,7 @@ def _decode(payload: bytes | bytearray | memoryview, max_bytes: int = MAX_MESSAG
     if not isinstance(body, dict):
         raise MessageError("not a message map")
     version = body.get("v")
-    if version != SCHEMA:
+    if type(version) is not int or version != SCHEMA:
         raise MessageError(f"schema version {version!r}, this build speaks {SCHEMA}")
     if not isinstance(body.get("type"), str):
         raise MessageError("message without a type")
@@ -437,7 +439,12 @@ class MapSnapshot(Message):
             state[k] = unpack_array(f"state[{k}]", v, "float32")
         poses = {}
         for i, item in enumerate(_get(body, "poses", list)):
-            if not isinstance(item, list) or len(item) != 2 or not isinstance(item[0], int):
+            if (
+                not isinstance(item, list)
+                or len(item) != 2
+                or type(item[0]) is not int
+                or item[0] < 0
+            ):
                 raise MessageError(f"poses[{i}]: expected [seq, T_wc]")
             poses[item[0]] = _pose(f"poses[{i}]", item[1])
         keyframes = _get(body, "keyframes", list)

@@ -65,7 +65,7 @@ class TransportConfig:
     zenoh_config: Path | None = None
 
     def __post_init__(self) -> None:
-        if not _SESSION_RE.match(self.session):
+        if not _SESSION_RE.fullmatch(self.session):  # match() lets a trailing newline in
             raise DimslamError(
                 f"--session {self.session!r}: use letters, digits, '_', '-' and '.' only"
             )
@@ -74,7 +74,9 @@ class TransportConfig:
 def default_endpoints(role: str) -> tuple[list[str], list[str]]:
     """(listen, connect) endpoints of `role` on one host."""
     ports = {"tracker": TRACKER_PORT, "mapper": MAPPER_PORT}
-    listen = [f"tcp/127.0.0.1:{ports[role]}"] if role in ports else []
+    # A role without a port still listens, on loopback only: zenoh's own default would be a
+    # random port on every interface (zenoh.md trap 9).
+    listen = [f"tcp/127.0.0.1:{ports.get(role, 0)}"]
     connect = [f"tcp/127.0.0.1:{p}" for r, p in ports.items() if r != role]
     return listen, connect
 
