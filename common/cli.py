@@ -10,12 +10,13 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from dimslam.common import logs
+from dimslam.common import launch, logs
 from dimslam.common.datasets import LAYOUTS, ReaderOptions, open_dataset
 from dimslam.common.errors import DimslamError
 from dimslam.common.evaluation import write_metrics
@@ -181,13 +182,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = slam_config(args)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    summary = run_dataset(
+    device = device_for(args.device)
+    if args.single_process:
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        run = run_dataset
+    else:
+        run = partial(launch.run_service, threads=args.threads)
+    summary = run(
         args.dataset,
         args.out,
         cfg,
-        device_for(args.device),
+        device,
         max_frames=args.max_frames,
         layout=args.layout,
         mesh=not args.no_mesh,
@@ -230,8 +236,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         progress=lambda i, n: bar.update(i + 1),
     )
     bar.close()
-    print(f"2/2 running SLAM ({args.preset} preset) and evaluating against the ground truth")
-    summary = run_dataset(str(scene), out, PRESETS[args.preset], torch.device("cpu"))
+    mode = "in one process" if args.single_process else "through the service"
+    print(f"2/2 running SLAM {mode} ({args.preset} preset), evaluating against the ground truth")
+    run = run_dataset if args.single_process else launch.run_service
+    summary = run(str(scene), out, PRESETS[args.preset], torch.device("cpu"))
     return finish_run(summary, out)
 
 
@@ -317,9 +325,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "demo",
         help="the main job on the built-in default scene (no data, no GPU)",
-        description="Render the built-in synthetic scene, run SLAM on it and evaluate the "
-        "result against its ground truth; writes the outputs of `dimslam run` (trajectory.txt, "
-        "metrics.json, trajectory.png, ...) next to the rendered scene.",
+        description="Render the built-in synthetic scene, run SLAM on it through the service "
+        "(mapper, tracker, camera and pose client as processes over zenoh on loopback) and "
+        "evaluate the result against its ground truth; writes the outputs of `dimslam run` "
+        "(trajectory.txt, metrics.json, trajectory.png, ...) next to the rendered scene.",
     )
     p.add_argument(
         "--out", type=Path, default=DEMO_OUT, help=f"output folder (default: {DEMO_OUT})"
@@ -330,14 +339,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--preset", choices=sorted(PRESETS), default="tiny", help="SLAM settings (default: tiny)"
     )
+    p.add_argument(
+        "--single-process",
+        action="store_true",
+        help="track and map in this process instead of through the service",
+    )
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser(
         "run",
-        help="run SLAM on a dataset (tracking and mapping in one process)",
+        help="run SLAM on a dataset through the service (or in one process)",
         description="Track the camera and build the map of a dataset, then write trajectory.txt, "
-        "keyframes.txt, mesh.ply, config.json, log.txt and, where the dataset has ground truth, "
-        "metrics.json.",
+        "keyframes.txt, mesh.ply, config.json and, where the dataset has ground truth, "
+        "metrics.json. By default the real service runs: mapper, tracker, a lockstep camera and "
+        "a pose client as separate processes on loopback (their logs: <role>.log; the poses as "
+        "first published: trajectory_online.txt). --single-process runs both steps in turn "
+        "here (log.txt).",
     )
     p.add_argument("dataset", help="dataset folder or video (any layout `dimslam dataset` reads)")
     p.add_argument("--out", type=Path, required=True, help="output folder (created)")
@@ -346,6 +363,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--layout", choices=sorted(LAYOUTS), help="dataset layout (default: detected)")
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
+    p.add_argument(
+        "--single-process",
+        action="store_true",
+        help="track and map in turn in this process (the paper's one-thread variant) instead "
+        "of running mapper, tracker and camera as separate processes over zenoh",
+    )
     add_slam_options(p)
     p.set_defaults(func=cmd_run)
     return parser

@@ -50,6 +50,17 @@ class EmptyMeshError(DimslamError):
     """The map has no surface where the cameras looked."""
 
 
+class GridTooLarge(DimslamError):
+    """The observed region needs more than `MAX_GRID_CELLS` cells at the asked voxel size."""
+
+    def __init__(self, suggest: float, cells: int, voxel: float) -> None:
+        super().__init__(
+            f"mesh grid of {cells:,} cells at voxel {voxel} exceeds {MAX_GRID_CELLS:,}: "
+            f"use a voxel of at least {suggest:.3g}"
+        )
+        self.suggest = suggest
+
+
 def extract_mesh(
     occupancy_fn: FieldFn,
     color_fn: FieldFn,
@@ -197,11 +208,7 @@ def _observed_grid(
         )
     cells = math.prod(int(c) - 1 for c in counts)
     if cells > MAX_GRID_CELLS:
-        suggest = voxel * (cells / MAX_GRID_CELLS) ** (1 / 3)
-        raise DimslamError(
-            f"mesh grid of {cells:,} cells at voxel {voxel} exceeds {MAX_GRID_CELLS:,}: "
-            f"use a voxel of at least {suggest:.3g}"
-        )
+        raise GridTooLarge(voxel * (cells / MAX_GRID_CELLS) ** (1 / 3) * 1.01, cells, voxel)
     return bound[0] + i0 * voxel, tuple(int(c) for c in counts)
 
 

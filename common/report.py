@@ -40,16 +40,21 @@ def format_metrics(result: dict) -> str:
         ("ATE mean", "ate_mean_m", "{:.4f} m"),
         ("ATE median", "ate_median_m", "{:.4f} m"),
         ("ATE max", "ate_max_m", "{:.4f} m"),
+        ("ATE RMSE, poses as published", "online_ate_rmse_m", "{:.4f} m"),
         ("alignment scale", "scale", "{:.4f}"),
         ("RPE translation", "rpe_trans_per_m", "{:.4f} m/m"),
         ("RPE rotation", "rpe_rot_deg_per_frame", "{:.4f} deg/frame"),
         ("mesh accuracy", "accuracy_cm", "{:.2f} cm"),
         ("mesh completion", "completion_cm", "{:.2f} cm"),
         ("completion ratio (<5 cm)", "completion_ratio", "{:.2f} %"),
+        ("tracking, mapper busy", "median_track_ms_mapper_busy", "{:.0f} ms/frame (median)"),
+        ("tracking, mapper idle", "median_track_ms_mapper_idle", "{:.0f} ms/frame (median)"),
     ]
     width = max(len(name) for name, _, _ in rows)
     return "\n".join(
-        f"{name:<{width}}  {fmt.format(result[key])}" for name, key, fmt in rows if key in result
+        f"{name:<{width}}  {fmt.format(result[key])}"
+        for name, key, fmt in rows
+        if result.get(key) is not None
     )
 
 

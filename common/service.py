@@ -8,15 +8,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
 import torch
 import zenoh
 
-from dimslam.common import logs
 from dimslam.common.errors import DimslamError
 from dimslam.common.options import add_config_arguments, apply_overrides, overrides_from_args
 from dimslam.common.slam import PRESETS, SlamConfig, device_for
@@ -147,28 +145,3 @@ def run_service(
         finally:
             flush(service)
             service.close()
-
-
-def not_built_yet(
-    prog: str,
-    description: str,
-    argv: Sequence[str] | None,
-    add_options: Callable[[argparse.ArgumentParser], None],
-) -> int:
-    """Entry point of a service process whose loop is not part of this release.
-
-    Parses the process's documented options (`add_options` adds its own, then the transport
-    options) so `--help` is already the real one, and then says plainly that the process cannot
-    run yet, with what to use instead.
-    """
-    parser = argparse.ArgumentParser(prog=prog, description=description)
-    add_options(parser)
-    add_transport_options(parser)
-    args = parser.parse_args(argv)
-    logs.configure(args.verbose, args.quiet)
-    print(
-        f"{prog}: the two-process service is not part of this release yet (tracked as issue #4). "
-        "Available now: `dimslam synth`, `dimslam dataset`, `dimslam eval`, `dimslam demo`.",
-        file=sys.stderr,
-    )
-    return 2

@@ -305,27 +305,52 @@ def run_dataset(
         mesh_path = None
         if mesh and slam.initialized and not lost:
             mesh_path = _write_mesh(slam, out_dir / "mesh.ply")
-        metrics: dict = {}
-        gt = reader.ground_truth()
-        if gt is not None and len(gt) > 0 and len(traj) >= 3:
-            has_gt_mesh = (Path(source) / "mesh.ply").is_file()
-            metrics = evaluate_files(
-                out_dir / "trajectory.txt",
-                str(source),
-                layout=layout,
-                mesh=mesh_path if has_gt_mesh else None,
-                plot=out_dir / "trajectory.png",
-            )
-            metrics["seconds"] = seconds
-            metrics["fps"] = len(traj) / max(seconds, 1e-9)
-            write_metrics(out_dir / "metrics.json", metrics)
-            print(format_metrics(metrics))
+        metrics = report_run(source, out_dir, layout, mesh_path, seconds, len(traj))
         return RunSummary(
             len(slam.frames), len(slam.keyframes), time.perf_counter() - started, lost, metrics
         )
     finally:
         logging.getLogger().removeHandler(handler)
         handler.close()
+
+
+def report_run(
+    source: str,
+    out_dir: Path,
+    layout: str | None,
+    mesh_path: Path | None,
+    seconds: float,
+    frames: int,
+    extra: dict | None = None,
+) -> dict:
+    """Evaluate `out_dir/trajectory.txt` (and the mesh) where the dataset has ground truth;
+    write metrics.json and trajectory.png and print the table. Returns the figures ({} if none).
+    """
+    try:
+        gt = open_dataset(source, layout=layout).ground_truth()
+    except DimslamError:
+        gt = None
+    if gt is None or len(gt) == 0 or frames < 3:
+        return {}
+    has_gt_mesh = (Path(source) / "mesh.ply").is_file()
+    metrics = evaluate_files(
+        out_dir / "trajectory.txt",
+        str(source),
+        layout=layout,
+        mesh=mesh_path if has_gt_mesh else None,
+        plot=out_dir / "trajectory.png",
+    )
+    online = out_dir / "trajectory_online.txt"
+    if online.is_file():
+        metrics["online_ate_rmse_m"] = evaluate_files(online, str(source), layout=layout)[
+            "ate_rmse_m"
+        ]
+    metrics["seconds"] = seconds
+    metrics["fps"] = frames / max(seconds, 1e-9)
+    metrics.update(extra or {})
+    write_metrics(out_dir / "metrics.json", metrics)
+    print(format_metrics(metrics))
+    return metrics
 
 
 def _write_mesh(slam: Slam, path: Path) -> Path | None:

@@ -102,11 +102,16 @@ def tum_lines(traj: Trajectory) -> list[str]:
     ]
 
 
+def format_tum(traj: Trajectory, header: str | None = None) -> str:
+    """The text of a TUM trajectory file: optional `# header`, column names, one line per pose."""
+    lines = [f"# {header}"] if header else []
+    lines.append("# timestamp tx ty tz qx qy qz qw")
+    lines.extend(tum_lines(traj))
+    return "\n".join(lines) + "\n"
+
+
 def write_tum(path: str | Path, traj: Trajectory, header: str | None = None) -> None:
     """Write a TUM trajectory file (parent folders created), one line per pose."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    lines = [f"# {header}"] if header else []
-    lines.append("# timestamp tx ty tz qx qy qz qw")
-    lines.extend(tum_lines(traj))
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text(format_tum(traj, header))

@@ -241,14 +241,22 @@ class Mapper:
         def color(p: torch.Tensor) -> torch.Tensor:
             return field(p.to(field.bound.device)).rgb.cpu()
 
-        with torch.no_grad():
-            return meshing.extract_mesh(
-                occupancy,
-                color,
-                field.bound.cpu(),
-                self.cfg.mesh_voxel,
-                poses.cpu(),
-                self.camera,
-                max_depth,
-                progress=progress,
-            )
+        def extract(voxel: float):
+            with torch.no_grad():
+                return meshing.extract_mesh(
+                    occupancy,
+                    color,
+                    field.bound.cpu(),
+                    voxel,
+                    poses.cpu(),
+                    self.camera,
+                    max_depth,
+                    progress=progress,
+                )
+
+        try:
+            return extract(self.cfg.mesh_voxel)
+        except meshing.GridTooLarge as e:
+            # The observed region is larger than the grid budget: a coarser mesh beats none.
+            log.warning("%s; meshing at %.3g instead", e, e.suggest)
+            return extract(e.suggest)

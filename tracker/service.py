@@ -17,6 +17,7 @@ The steps are the single-process ones (`Tracker.track`, `Tracker.is_keyframe`,
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -62,6 +63,19 @@ class TrackerStats:
     skipped_live: int = 0
     snapshots: int = 0
     track_seconds: list[float] = field(default_factory=list)
+    mapper_busy: list[bool] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """Median tracking time per frame with the mapper busy and idle (the overlap)."""
+        t = np.array(self.track_seconds)
+        busy = np.array(self.mapper_busy, dtype=bool)
+        out = {"frames": self.frames, "tracked": self.tracked, "snapshots": self.snapshots}
+        for name, sel in (("busy", busy), ("idle", ~busy)):
+            out[f"frames_mapper_{name}"] = int(sel.sum())
+            out[f"median_track_ms_mapper_{name}"] = (
+                float(np.median(t[sel]) * 1000) if sel.any() else None
+            )
+        return out
 
 
 class TrackerService:
@@ -90,6 +104,7 @@ class TrackerService:
         self.pending: list[FrameState] = []
         self.outbox: list[bytes] = []
         self.map_version = 0
+        self.map_round = -1
         self.round = 0
         self.init_sent = False
         self.stats = TrackerStats()
@@ -103,7 +118,7 @@ class TrackerService:
             session.declare_subscriber(keys.frames, self.frames_in.callback),
             session.declare_subscriber(keys.map, self.maps_in.callback),
         ]
-        self.pose_pub = publisher(session, keys.poses, lossless=False)
+        self.pose_pub = publisher(session, keys.poses, lossless=True, urgent=True)
         self.mapping_pub = publisher(session, keys.mapping, lossless=True)
         self.presence = Presence(session, keys, "tracker", self._peer_changed)
         self.session = session
@@ -219,6 +234,7 @@ class TrackerService:
             raise
         self.stats.tracked += 1
         self.stats.track_seconds.append(time.perf_counter() - started)
+        self.stats.mapper_busy.append(self._mapper_busy())
         if self.tracker.is_keyframe(self.field, state, keyframes[-1]):
             state.keyframe = True
         self._publish_pose(state)
@@ -227,6 +243,10 @@ class TrackerService:
             self._send_batch(self.pending)
             self.pending = []
         release_images(self.frames, self.cfg)
+
+    def _mapper_busy(self) -> bool:
+        """Whether a batch sent to a live mapper has no snapshot yet (a round is running)."""
+        return self.presence.alive("mapper") and self.map_round < self.round - 1
 
     def _publish_pose(self, state: FrameState) -> None:
         T = state.T_wc.detach().cpu().double().numpy()
@@ -281,6 +301,7 @@ class TrackerService:
         first = not self.initialized
         self._apply_poses(snap)
         self.map_version = snap.version
+        self.map_round = snap.round
         self.stats.snapshots += 1
         log.debug("map version %d (round %d) swapped in", snap.version, snap.round)
         if first:
@@ -353,7 +374,8 @@ class TrackerService:
     def write(self, out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
         write_tum(out / "trajectory_online.txt", self.online_trajectory(), header="as published")
-        log.info("wrote %s", out / "trajectory_online.txt")
+        (out / "tracker_stats.json").write_text(json.dumps(self.stats.summary(), indent=2) + "\n")
+        log.info("wrote trajectory_online.txt and tracker_stats.json to %s", out)
 
     def close(self) -> None:
         self.presence.close()

@@ -29,14 +29,6 @@ def test_every_console_script_has_help(script):
     assert done.stdout.startswith(f"usage: {script}")
 
 
-@pytest.mark.parametrize("script", SCRIPTS[1:])
-def test_service_processes_say_they_are_not_built_yet(script):
-    exe = Path(sys.executable).parent / script
-    args = ["0"] if script == "dimslam-camera" else []
-    done = subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=60)
-    assert done.returncode == 2 and "not part of this release" in done.stderr
-
-
 def test_synth_then_dataset_describes_it(scene, capsys):
     assert main(["dataset", str(scene), "--write-gt", str(scene.parent / "gt.txt"), "--check"]) == 0
     out = capsys.readouterr().out

@@ -23,7 +23,7 @@ def sequence(tmp_path_factory):
 
 def test_run_writes_every_output(sequence, tmp_path):
     out = tmp_path / "run"
-    args = ["run", str(sequence), "--out", str(out), "--preset", "tiny"]
+    args = ["run", "--single-process", str(sequence), "--out", str(out), "--preset", "tiny"]
     args += ["--mapper.init_iters", "10", "--mapper.prior_iters", "5", "--tracker.iters", "2"]
     assert main(args) == 0
     traj = read_tum(out / "trajectory.txt")
@@ -48,13 +48,29 @@ def test_overrides_are_typed_and_checked():
 
 
 def test_bad_override_is_a_one_line_error(sequence, tmp_path, capsys):
-    args = ["run", str(sequence), "--out", str(tmp_path / "x"), "--tracker.iters", "many"]
+    args = [
+        "run",
+        "--single-process",
+        str(sequence),
+        "--out",
+        str(tmp_path / "x"),
+        "--tracker.iters",
+        "many",
+    ]
     assert main(args) == 2
     assert "--tracker.iters" in capsys.readouterr().err
 
 
 def test_too_short_a_sequence_is_refused(sequence, tmp_path, capsys):
-    args = ["run", str(sequence), "--out", str(tmp_path / "x"), "--preset", "tiny"]
+    args = [
+        "run",
+        "--single-process",
+        str(sequence),
+        "--out",
+        str(tmp_path / "x"),
+        "--preset",
+        "tiny",
+    ]
     assert main([*args, "--max-frames", "2"]) == 2
     assert "too short" in capsys.readouterr().err
 
@@ -69,7 +85,21 @@ def test_tiny_preset_tracks_a_synthetic_sequence(tmp_path):
     seq = tmp_path / "seq"
     assert main(["synth", str(seq), "--frames", "40", "--size", "160x120", "--seed", "0"]) == 0
     out = tmp_path / "run"
-    assert main(["run", str(seq), "--out", str(out), "--preset", "tiny", "--no-mesh"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "--single-process",
+                str(seq),
+                "--out",
+                str(out),
+                "--preset",
+                "tiny",
+                "--no-mesh",
+            ]
+        )
+        == 0
+    )
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["matched"] == 40
     assert metrics["ate_rmse_m"] < 0.04

@@ -233,10 +233,15 @@ def test_frame_travels_from_publisher_to_inbox(listen_only):
 
 def test_publisher_congestion_policy_per_channel(listen_only):
     with _peers(listen_only) as (a, _, keys):
-        pub = publisher(a, keys.poses, lossless=False)
+        pub = publisher(a, keys.poses, lossless=True, urgent=True)
+        try:
+            assert pub.congestion_control == zenoh.CongestionControl.BLOCK
+            assert pub.priority == zenoh.Priority.INTERACTIVE_HIGH
+        finally:
+            pub.undeclare()
+        pub = publisher(a, keys.keyframes, lossless=False)
         try:
             assert pub.congestion_control == zenoh.CongestionControl.DROP
-            assert pub.priority == zenoh.Priority.INTERACTIVE_HIGH
         finally:
             pub.undeclare()
         pub = publisher(a, keys.map, lossless=True)
