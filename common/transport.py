@@ -10,8 +10,9 @@ them (zenoh.md trap 11).
 | poses | tracker -> anyone | PoseMessage, EndOfStream | BLOCK, express | per client |
 | mapping | tracker -> mapper | MappingBatch, EndOfStream | BLOCK | BATCH_QUEUE, coalesced |
 | map | mapper -> tracker | MapSnapshot | BLOCK | 1, newest wins |
-| keyframes | mapper -> anyone | PoseMessage (refined) | DROP | per client |
-| query/{map,mesh,trajectory} | anyone -> mapper | snapshot, PLY, TUM text | | |
+| keyframes | mapper -> anyone | PoseMessage (refined) | BLOCK, express | per client |
+| query/{map,keyframes} | tracker -> mapper | snapshot, MappingBatch of keyframes | | |
+| query/{mesh,trajectory} | anyone -> mapper | PLY, TUM text | | |
 | alive/<role> | every process | liveliness token | | |
 
 Lockstep (the camera never more than K frames ahead of the published poses) bounds the frame
@@ -130,7 +131,7 @@ class Keys:
         raise AttributeError(topic)
 
     def query(self, what: str) -> str:
-        assert what in {"map", "mesh", "trajectory"}, what
+        assert what in {"map", "mesh", "trajectory", "keyframes"}, what
         return f"{self.root}/query/{what}"
 
     def alive(self, role: str = "*") -> str:

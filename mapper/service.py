@@ -10,9 +10,12 @@ The steps are the single-process ones (`Mapper.initialize`, `Mapper.map`,
   round runs on the newest `every` frames plus overlapping keyframes, exactly as in one process.
 - After each round: a versioned snapshot (map tensors, refined poses of every keyframe and of
   the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
-- Queries: `query/map` (the newest snapshot), `query/trajectory` (TUM text of the final poses:
-  keyframes as refined, every other frame re-anchored to the keyframe before it), `query/mesh`
-  (PLY bytes, extracted between rounds).
+- A tracker whose mapper was restarted sends its own snapshot on the mapping topic, then its
+  newest keyframes: a mapper without a map (only) takes them as its starting point.
+- Queries: `query/map` (the newest snapshot), `query/keyframes` (the newest keyframes with
+  their images, for a tracker that takes over a running map), `query/trajectory` (TUM text of
+  the final poses: keyframes as refined, every other frame re-anchored to the keyframe before
+  it), `query/mesh` (PLY bytes, extracted between rounds).
 """
 
 from __future__ import annotations
@@ -30,8 +33,10 @@ from dimslam.common import pose
 from dimslam.common.camera import Camera
 from dimslam.common.mesh import EmptyMeshError
 from dimslam.common.messages import (
+    MAX_BATCH_FRAMES,
     EndOfStream,
     MappingBatch,
+    MappingFrame,
     MapSnapshot,
     MessageError,
     PoseMessage,
@@ -76,18 +81,20 @@ class MapperService:
         self.rounds = 0
         self.ended = False
         self.snapshot_bytes: bytes | None = None
+        self.seed: MapSnapshot | None = None
         self.rejects = Rejects()
         self.round_seconds: list[float] = []
         self.batches_in = Inbox(BATCH_QUEUE, "mapping batches")
         self.mesh_queries: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         stop.watch(self.batches_in)
         self.map_pub = publisher(session, keys.map, lossless=True)
-        self.keyframe_pub = publisher(session, keys.keyframes, lossless=False)
+        self.keyframe_pub = publisher(session, keys.keyframes, lossless=True, urgent=True)
         # Keep references to everything declared (zenoh.md trap 4).
         self.declared = [
             session.declare_subscriber(keys.mapping, self.batches_in.callback),
             session.declare_queryable(keys.query("map"), self._answer_map),
             session.declare_queryable(keys.query("trajectory"), self._answer_trajectory),
+            session.declare_queryable(keys.query("keyframes"), self._answer_keyframes),
             session.declare_queryable(keys.query("mesh"), self.mesh_queries.put),
         ]
         self.presence = Presence(session, keys, "mapper", self._peer_changed)
@@ -104,6 +111,24 @@ class MapperService:
                 query.reply_err(b"no map yet")
             else:
                 query.reply(query.key_expr, self.snapshot_bytes)
+
+    def _answer_keyframes(self, query: zenoh.Query) -> None:
+        with query:
+            keyframes = [f for f in self.keyframes if f.rgb is not None][-MAX_BATCH_FRAMES:]
+            if self.camera is None or not keyframes:
+                query.reply_err(b"no keyframes yet")
+                return
+            items = tuple(
+                MappingFrame(
+                    f.index,
+                    f.timestamp,
+                    (f.rgb * 255.0).round().byte().cpu().numpy(),
+                    f.T_wc.detach().cpu().double().numpy(),
+                    True,
+                )
+                for f in keyframes
+            )
+            query.reply(query.key_expr, MappingBatch(self.rounds, items, self.camera).to_bytes())
 
     def _answer_trajectory(self, query: zenoh.Query) -> None:
         with query:
@@ -134,8 +159,11 @@ class MapperService:
             batches = []
             for p in [payload, *self.batches_in.drain()]:
                 try:
-                    if message_type(p) == EndOfStream.TYPE:
+                    kind = message_type(p)
+                    if kind == EndOfStream.TYPE:
                         self.ended = True
+                    elif kind == MapSnapshot.TYPE:
+                        self._seed(MapSnapshot.from_bytes(p))
                     else:
                         batches.append(MappingBatch.from_bytes(p))
                 except MessageError as e:
@@ -167,6 +195,9 @@ class MapperService:
         for batch in batches:
             if batch.round == 0:
                 self._reset(batch.camera)
+            elif self.mapper is None and self.seed is not None:
+                self._reset(batch.camera)
+                self._take_seed()
             elif self.mapper is None:
                 self.rejects("mapping", MessageError(f"batch {batch.round} before initialization"))
                 continue
@@ -192,6 +223,23 @@ class MapperService:
         self._anchor(window)
         release_images(self.frames, self.cfg)
         self._publish(batches[-1].round, window)
+
+    def _seed(self, snap: MapSnapshot) -> None:
+        """A tracker's map, sent because this mapper had none: kept for its next batch."""
+        if snap.config != self.digest:
+            self.rejects("mapping", MessageError("a seed map with other settings"))
+        elif self.mapper is None:
+            self.seed = snap
+        else:
+            log.info("a tracker offered map version %d; this mapper keeps its own", snap.version)
+
+    def _take_seed(self) -> None:
+        assert self.mapper is not None and self.seed is not None
+        state = {k: torch.from_numpy(v) for k, v in self.seed.state.items()}
+        self.mapper.field.load_state_dict(state)
+        self.version = self.seed.version
+        log.info("continuing the tracker's map version %d", self.version)
+        self.seed = None
 
     def _reset(self, camera: Camera) -> None:
         if self.mapper is not None:

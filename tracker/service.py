@@ -12,13 +12,19 @@ The steps are the single-process ones (`Tracker.track`, `Tracker.is_keyframe`,
   estimates; frames tracked after the snapshot's newest frame move with it (the correction of
   that frame is applied to them), so the motion model does not see a jump.
 - The mapper's liveliness token is watched: if it dies, the tracker says so once and keeps
-  tracking on the last map.
+  tracking on the last map. When a mapper appears while the tracker has a map, the tracker asks
+  it for its map; a mapper without one (restarted) gets the tracker's: a snapshot and the newest
+  keyframes with their images, on the mapping topic, before any held batch.
+- A tracker that starts while a mapper holds a map continues that map (a late or restarted
+  tracker): it fetches the snapshot and the newest keyframes by query, and numbers its frames
+  after the map's so that frame numbers never collide.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +38,7 @@ from dimslam.common import pose
 from dimslam.common.camera import Camera
 from dimslam.common.field import Field
 from dimslam.common.messages import (
+    MAX_BATCH_FRAMES,
     EndOfStream,
     FrameMessage,
     MappingBatch,
@@ -107,6 +114,10 @@ class TrackerService:
         self.map_round = -1
         self.round = 0
         self.init_sent = False
+        self.offset = 0  # internal frame index = camera seq + offset (see `fetch_map`)
+        self.handover: tuple[MapSnapshot, MappingBatch] | None = None
+        self.next_guess: torch.Tensor | None = None
+        self.mapper_appeared = threading.Event()
         self.stats = TrackerStats()
         self.rejects = Rejects()
         self.mapper_gone_logged = False
@@ -134,6 +145,76 @@ class TrackerService:
             )
         else:
             log.info("a mapper is present")
+            self.mapper_appeared.set()
+
+    def _query(self, what: str, timeout: float) -> bytes | None:
+        for reply in self.session.get(self.keys.query(what), timeout=timeout):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+        return None
+
+    def fetch_map(self, timeout: float = 5.0) -> None:
+        """A late tracker: take over the map a running mapper holds, if any."""
+        if not self.presence.wait_for("mapper", 2.0):
+            return
+        try:
+            snap_bytes = self._query("map", timeout)
+            kf_bytes = self._query("keyframes", timeout) if snap_bytes else None
+            if snap_bytes is None or kf_bytes is None:
+                return
+            snap, batch = MapSnapshot.from_bytes(snap_bytes), MappingBatch.from_bytes(kf_bytes)
+        except MessageError as e:
+            self.rejects("query/map", e)
+            return
+        if snap.config != self.digest:
+            log.warning("the running mapper's map has other settings: starting a new one")
+            return
+        self.handover = (snap, batch)
+        log.info("a mapper holds map version %d: this tracker continues it", snap.version)
+
+    def _adopt(self) -> None:
+        """Continue the fetched map: its keyframes become this tracker's."""
+        assert self.handover is not None and self.camera is not None
+        snap, batch = self.handover
+        self.handover = None
+        if batch.camera != self.camera:
+            log.warning("the running map was made with another camera: starting a new one")
+            return
+        self.field.load_state_dict({k: torch.from_numpy(v) for k, v in snap.state.items()})
+        for f in batch.frames:
+            rgb = torch.from_numpy(f.rgb).to(self.device).float() / 255.0
+            T = torch.from_numpy(f.T_wc).float().to(self.device)
+            self.frames.append(FrameState(f.seq, f.timestamp, rgb, T, keyframe=True))
+        newest = max(snap.poses, default=0)
+        if newest in snap.poses:  # the last tracked pose is the best guess for the next frame
+            self.next_guess = torch.from_numpy(snap.poses[newest]).float().to(self.device)
+        self.offset = max([newest, *(f.index for f in self.frames)]) + 1
+        self.map_version = snap.version
+        self.map_round = snap.round
+        self.round = snap.round + 1
+        self.init_sent = True
+
+    def _reseed_mapper(self) -> None:
+        """A mapper appeared: if it has no map (restarted), give it ours before any batch."""
+        self.mapper_appeared.clear()
+        if not self.initialized or self._query("map", 5.0) is not None:
+            return
+        assert self.camera is not None
+        keyframes = [f for f in self.frames if f.keyframe and f.rgb is not None]
+        keyframes = keyframes[-MAX_BATCH_FRAMES:]
+        if not keyframes:
+            return
+        snap = MapSnapshot(
+            self.map_version,
+            self.map_round,
+            self.digest,
+            {k: v.detach().cpu().numpy() for k, v in self.field.state_dict().items()},
+            {f.index: f.T_wc.detach().cpu().double().numpy() for f in keyframes},
+            tuple(f.index for f in keyframes),
+        )
+        self.outbox[:0] = [snap.to_bytes(), self._batch_bytes(keyframes, self.round)]
+        self.round += 1
+        log.info("the new mapper has no map: sending map version %d", self.map_version)
 
     # -- main loop --------------------------------------------------------------------------
 
@@ -143,10 +224,13 @@ class TrackerService:
 
     def run(self) -> int:
         """Track until the stream ends or a stop signal; returns the exit code (3: lost)."""
+        self.fetch_map()
         bar = Progress(None, "tracker")
         code = 0
         try:
             while not self.stop:
+                if self.mapper_appeared.is_set():
+                    self._reseed_mapper()
                 self._apply_snapshots()
                 self._flush_outbox()
                 if self.init_sent and not self.initialized:
@@ -187,8 +271,10 @@ class TrackerService:
         if msg.live and len(self.frames_in) > 0:
             self.stats.skipped_live += 1  # a newer live frame is waiting: this one is stale
             return False
+        if self.handover is not None:
+            self._adopt()
         self.stats.frames += 1
-        self._process(msg.seq, msg.timestamp, rgb)
+        self._process(msg.seq + self.offset, msg.timestamp, rgb)
         return False
 
     def _prepare(self, msg: FrameMessage) -> torch.Tensor:
@@ -219,7 +305,14 @@ class TrackerService:
                 self.init_sent = True
             return
         assert self.tracker is not None
-        guess = constant_velocity(self.frames[-1].T_wc, self.frames[-2].T_wc)
+        last = self.frames[-1]
+        before = self.frames[-2] if len(self.frames) > 1 else None
+        if self.next_guess is not None:
+            guess, self.next_guess = self.next_guess, None
+        elif before is not None and before.index == last.index - 1:
+            guess = constant_velocity(last.T_wc, before.T_wc)
+        else:  # no velocity across a gap (skipped live frames, a continued map)
+            guess = last.T_wc.clone()
         if not torch.isfinite(guess).all():
             raise TrackingLost(f"frame {seq}: the motion model gives a non-finite pose")
         state = FrameState(seq, timestamp, rgb, guess)
@@ -251,10 +344,11 @@ class TrackerService:
     def _publish_pose(self, state: FrameState) -> None:
         T = state.T_wc.detach().cpu().double().numpy()
         self.online.setdefault(state.index, (state.timestamp, T))
-        msg = PoseMessage(state.index, state.timestamp, T, state.keyframe, self.map_version)
+        seq = state.index - self.offset  # the camera's own numbering
+        msg = PoseMessage(seq, state.timestamp, T, state.keyframe, self.map_version)
         self.pose_pub.put(msg.to_bytes())
 
-    def _send_batch(self, frames: list[FrameState]) -> None:
+    def _batch_bytes(self, frames: list[FrameState], round_: int) -> bytes:
         assert self.camera is not None
         items = tuple(
             MappingFrame(
@@ -265,8 +359,12 @@ class TrackerService:
                 f.keyframe,
             )
             for f in frames
+            if f.rgb is not None
         )
-        self.outbox.append(MappingBatch(self.round, items, self.camera).to_bytes())
+        return MappingBatch(round_, items, self.camera).to_bytes()
+
+    def _send_batch(self, frames: list[FrameState]) -> None:
+        self.outbox.append(self._batch_bytes(frames, self.round))
         self.round += 1
         self._flush_outbox()
 
@@ -306,7 +404,8 @@ class TrackerService:
         log.debug("map version %d (round %d) swapped in", snap.version, snap.round)
         if first:
             for f in self.frames:
-                self._publish_pose(f)
+                if f.index >= self.offset:
+                    self._publish_pose(f)
 
     def _apply_poses(self, snap: MapSnapshot) -> None:
         by_seq = {f.index: f for f in self.frames}

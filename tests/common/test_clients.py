@@ -55,8 +55,10 @@ class TrackerSide:
         self.frames = Inbox(1024, "frames")
         self._frames_sub = self.session.declare_subscriber(self.keys.frames, self.frames.callback)
         # Lossless here (the tracker uses DROP) so that no test depends on queue sizes.
-        self.poses = publisher(self.session, self.keys.poses, lossless=True)
-        self.keyframes = publisher(self.session, self.keys.keyframes, lossless=True)
+        # As the tracker and mapper declare them: both express at one priority, so a message put
+        # on one topic before another on the other arrives first (the test relies on it).
+        self.poses = publisher(self.session, self.keys.poses, lossless=True, urgent=True)
+        self.keyframes = publisher(self.session, self.keys.keyframes, lossless=True, urgent=True)
         self.presence = Presence(self.session, self.keys, "tracker")
         self._tokens = threading.Condition()
         self._clients = 0
@@ -73,6 +75,13 @@ class TrackerSide:
         """Until a dimslam-poses process listens (it declares its token after subscribing)."""
         with self._tokens:
             assert self._tokens.wait_for(lambda: self._clients > 0, WAIT_S), "no pose client"
+        # The token can reach us before the subscriptions' routes do: wait for both to match.
+        tick = threading.Event()
+        for pub in (self.poses, self.keyframes):
+            deadline = time.monotonic() + WAIT_S
+            while not pub.matching_status.matching:
+                assert time.monotonic() < deadline, "the pose client's subscription never matched"
+                tick.wait(0.02)
 
     def args(self) -> list[str]:
         return ["--session", self.name, "--connect", self.endpoint]
@@ -202,14 +211,20 @@ def test_pose_client_prints_json_writes_the_file_and_survives_garbage(tracker, s
     client = start("dimslam-poses", *tracker.args(), "--json", "--keyframes", "--out", str(out))
     tracker.wait_for_pose_client()
 
+    # The refinement goes out twice, first and last: zenoh orders messages per publisher, not
+    # across topics (the client's two subscriptions run on their own threads; the client stops
+    # at the end), and a just-matched route may still miss the very first message (measured:
+    # about 1 run in 5 lost one of the two placements, never both).
+    refined = np.eye(4)
+    refined[1, 3] = 0.5
+    refinement = PoseMessage(0, 1.0, refined, keyframe=True, map_version=2).to_bytes()
+    tracker.keyframes.put(refinement)
     tracker.poses.put(b"\x93not a message")
     tracker.poses.put(PoseMessage(9, 1.3, np.eye(4)).to_bytes()[:-7])  # truncated
     for seq in range(5):
         tracker.publish_pose(seq, x=seq)
     tracker.publish_pose(3, x=30.0)  # the same frame again: the latest pose wins in the file
-    refined = np.eye(4)
-    refined[1, 3] = 0.5
-    tracker.keyframes.put(PoseMessage(0, 1.0, refined, keyframe=True, map_version=2).to_bytes())
+    tracker.keyframes.put(refinement)
     tracker.poses.put(EndOfStream(5).to_bytes())
 
     code, stdout, err = _finish(client)
@@ -218,9 +233,11 @@ def test_pose_client_prints_json_writes_the_file_and_survives_garbage(tracker, s
     records = [json.loads(line) for line in stdout.splitlines()]
     # Two topics: each keeps its order, but they may interleave either way.
     assert [r["seq"] for r in records if not r["refined"]] == [0, 1, 2, 3, 4, 3]
-    (kf,) = [r for r in records if r["refined"]]
-    assert kf["seq"] == 0 and kf["keyframe"] and kf["map_version"] == 2
-    np.testing.assert_allclose(kf["T_wc"], refined)
+    refinements = [r for r in records if r["refined"]]
+    assert 1 <= len(refinements) <= 2
+    for kf in refinements:
+        assert kf["seq"] == 0 and kf["keyframe"] and kf["map_version"] == 2
+        np.testing.assert_allclose(kf["T_wc"], refined)
 
     written = read_tum(out)
     np.testing.assert_allclose(written.timestamps, 1 + np.arange(5) / 30, atol=1e-6)
