@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from dimslam.common.errors import DimslamError
-from dimslam.common.options import to_dict
+from dimslam.common.options import flat_settings, to_dict
 from dimslam.common.slam import RunSummary, SlamConfig, report_run
 from dimslam.common.trajectory import read_tum
 
@@ -38,19 +38,9 @@ def free_port() -> int:
 
 
 def _settings_args(cfg: SlamConfig) -> list[str]:
-    """Every setting as `--section.field value`, so each process runs exactly `cfg`."""
-    args = []
-
-    def walk(d: dict, prefix: str) -> None:
-        for k, v in d.items():
-            if isinstance(v, dict):
-                walk(v, f"{prefix}{k}.")
-            else:
-                text = ",".join(str(x) for x in v) if isinstance(v, list | tuple) else str(v)
-                args.append(f"--{prefix}{k}={text}")  # '=': values may start with '-'
-
-    walk(to_dict(cfg), "")
-    return args
+    """Every setting as `--section.field=value` ('=': values may start with '-'), so each
+    process runs exactly `cfg`."""
+    return [f"--{name}={text}" for name, text in flat_settings(to_dict(cfg)).items()]
 
 
 def run_service(

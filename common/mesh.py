@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from scipy import ndimage
 from skimage import measure
 
 from dimslam.common import pose
@@ -48,6 +49,54 @@ MAX_GRID_CELLS = 512**3
 
 class EmptyMeshError(DimslamError):
     """The map has no surface where the cameras looked."""
+
+
+def fused_occupancy(
+    depths: torch.Tensor, T_wc: torch.Tensor, camera: Camera, truncation: float
+) -> FieldFn:
+    """An occupancy built from depth maps: 0.5 on the fused surface, 0 where nothing was seen.
+
+    Each view says a point is free if it lies in front of the view's depth at its pixel and
+    occupied just behind it (signed distance `depth - z`, truncated); the mean signed distance
+    over the views that see the point (not beyond `truncation` behind their surface) becomes
+    `sigmoid(-sdf / (truncation / 4))`, so the 0.5 level is the fused surface (TSDF fusion with
+    equal weights). A point no view sees within `truncation` of its surface or in front of it
+    is unknown (NaN: mesh with `unknown_nan=True`). Used to mesh a map whose learned occupancy
+    forms no 0.5 surface.
+
+    Args:
+        depths: `(V, H, W)` z-depth maps (non-positive or non-finite: no depth).
+        T_wc: `(V, 4, 4)` their camera-to-world poses.
+        camera: intrinsics of the depth maps.
+        truncation: signed distances are clamped to +-truncation, map units.
+    """
+    check_shape("depths", depths, (None, camera.height, camera.width))
+    check_shape("T_wc", T_wc, (depths.shape[0], 4, 4))
+    T_cw = pose.invert(T_wc.double())
+    maps = depths.float()[:, None]  # (V, 1, H, W) for grid_sample
+    scale = torch.tensor([2.0 / camera.width, 2.0 / camera.height], dtype=torch.float32)
+
+    def occupancy(p: torch.Tensor) -> torch.Tensor:
+        total = torch.zeros(p.shape[0], dtype=torch.float32)
+        count = torch.zeros(p.shape[0], dtype=torch.float32)
+        for v in range(T_cw.shape[0]):
+            uv, z = camera.project(pose.transform_points(T_cw[v], p.double()).float())
+            grid = (uv + 0.5) * scale - 1  # pixel centres at integer coordinates
+            d = torch.nn.functional.grid_sample(
+                maps[v : v + 1], grid.view(1, 1, -1, 2), mode="nearest", align_corners=False
+            ).view(-1)
+            inside = (grid.abs() <= 1).all(-1) & (z > 0) & torch.isfinite(d) & (d > 0)
+            sdf = (d - z).clamp(-truncation, truncation)
+            seen = inside & (d - z > -truncation)
+            total += torch.where(seen, sdf, 0.0)
+            count += seen.float()
+        sdf = total / count.clamp(min=1)
+        # Never seen within the truncation band (outside every view, or deep behind every
+        # surface that sees it): unknown, so no surface forms between what was seen and what
+        # was not (neither a false inner shell nor walls at the edges of the views).
+        return torch.where(count > 0, torch.sigmoid(-sdf / (truncation / 4)), float("nan"))
+
+    return occupancy
 
 
 class GridTooLarge(DimslamError):
@@ -72,6 +121,7 @@ def extract_mesh(
     chunk: int = 65536,
     level: float = 0.5,
     progress: Callable[[int, int], None] | None = None,
+    unknown_nan: bool = False,
 ) -> trimesh.Trimesh:
     """Mesh the `level` set of the occupancy where the cameras looked.
 
@@ -91,6 +141,8 @@ def extract_mesh(
         chunk: points per call of `occupancy_fn` / `color_fn`.
         level: the surface's occupancy value.
         progress: called as `progress(points_done, points_total)` after each occupancy chunk.
+        unknown_nan: the occupancy is NaN where the field knows nothing (see
+            `fused_occupancy`); no face is made in a cube that touches such a point.
 
     Returns:
         The mesh in map coordinates, float64 vertices, uint8 RGBA vertex colours.
@@ -120,10 +172,14 @@ def extract_mesh(
             i, jk = idx // (shape[1] * shape[2]), idx % (shape[1] * shape[2])
             ijk = torch.stack([i, jk // shape[2], jk % shape[2]], 1)
             points = (origin + ijk * voxel).float()
-            volume[first : first + len(idx)] = _call(occupancy_fn, points, (len(idx),), "occupancy")
+            volume[first : first + len(idx)] = _call(
+                occupancy_fn, points, (len(idx),), "occupancy", allow_nan=unknown_nan
+            )
             if progress is not None:
                 progress(first + len(idx), len(volume))
-    lo, hi = float(volume.min()), float(volume.max())
+    known = np.isfinite(volume)
+    volume[~known] = 0.0
+    lo, hi = (float(volume[known].min()), float(volume[known].max())) if known.any() else (0, 0)
     if not lo < level < hi:
         raise EmptyMeshError(
             f"no surface to mesh: occupancy over the observed region ranges over [{lo:.3g}, "
@@ -133,7 +189,11 @@ def extract_mesh(
     # seen from free space (trimesh's convention), so face normals point out of the occupied
     # region; its default "descent" gives the reverse (test_mesh checks the orientation).
     verts, faces, _, _ = measure.marching_cubes(
-        volume.reshape(shape), level, gradient_direction="ascent", allow_degenerate=False
+        volume.reshape(shape),
+        level,
+        gradient_direction="ascent",
+        allow_degenerate=False,
+        mask=None if known.all() else _cubes_known(known.reshape(shape)),
     )
     # marching_cubes works in index units; the grid's origin and spacing make them map units.
     verts = origin.numpy() + verts.astype(np.float64) * voxel
@@ -212,11 +272,19 @@ def _observed_grid(
     return bound[0] + i0 * voxel, tuple(int(c) for c in counts)
 
 
-def _call(fn: FieldFn, points: torch.Tensor, shape: tuple, name: str) -> np.ndarray:
-    """`fn(points)` as a float32 numpy array of `shape`, checked to be finite."""
+def _cubes_known(known: np.ndarray) -> np.ndarray:
+    """Grid points all of whose 26 neighbours are known: every cube that touches the point has
+    only known corners, whichever corner of its cubes marching cubes' mask refers to."""
+    return ndimage.binary_erosion(known, structure=np.ones((3, 3, 3), bool), border_value=0)
+
+
+def _call(
+    fn: FieldFn, points: torch.Tensor, shape: tuple, name: str, allow_nan: bool = False
+) -> np.ndarray:
+    """`fn(points)` as a float32 numpy array of `shape`, checked to be finite (or NaN)."""
     out = fn(points)
     check_shape(f"{name} output", out, shape)
     out = out.detach().float().cpu().numpy()
-    if not np.isfinite(out).all():
+    if not (np.isfinite(out) | (allow_nan & np.isnan(out))).all():
         raise DimslamError(f"the map's {name} is not finite (NaN/inf): has the map diverged?")
     return out

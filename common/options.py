@@ -111,3 +111,17 @@ def _replace_path(cfg: Any, path: list[str], value: Any) -> Any:
 def to_dict(cfg: Any) -> dict:
     """Plain nested dict of a config (tuples as lists), for config.json."""
     return dataclasses.asdict(cfg)
+
+
+def flat_settings(settings: dict, prefix: str = "") -> dict[str, str]:
+    """`to_dict` output (or config.json) as `{"section.field": "text"}`, the inverse of
+    `apply_overrides`' input: tuples as `a,b,c`."""
+    flat: dict[str, str] = {}
+    for key, value in settings.items():
+        if isinstance(value, dict):
+            flat.update(flat_settings(value, f"{prefix}{key}."))
+        elif isinstance(value, list | tuple):
+            flat[f"{prefix}{key}"] = ",".join(str(v) for v in value)
+        else:
+            flat[f"{prefix}{key}"] = str(value)
+    return flat

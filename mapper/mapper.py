@@ -22,7 +22,7 @@ from dimslam.common.camera import Camera
 from dimslam.common.field import Field, MapConfig
 from dimslam.common.objective import LossConfig, WindowLoss
 from dimslam.common.options import option
-from dimslam.common.render import RenderConfig, render_pixels
+from dimslam.common.render import RenderConfig, render_image, render_pixels
 from dimslam.common.window import (
     FrameState,
     WindowStats,
@@ -53,6 +53,7 @@ class MapperConfig:
     gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
     post_iters: int = option(0, "Map-only post-optimization iterations over all keyframes.")
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
+    mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
 
 
 @dataclass(frozen=True)
@@ -232,11 +233,24 @@ class Mapper:
         return stats
 
     def extract_mesh(self, poses: torch.Tensor, max_depth: float, progress=None):
-        """The map's surface, culled to the estimated frustums (see `common/mesh.py`)."""
-        field = self.field
+        """The map's surface, culled to the estimated frustums (see `common/mesh.py`).
 
-        def occupancy(p: torch.Tensor) -> torch.Tensor:
-            return field.occupancy(p.to(field.bound.device)).cpu()
+        The learned occupancy of an RGB-only map stays below 0.5 (docs/status.md: rays end in
+        several samples of moderate occupancy), so the surface is the 0.5 level of the
+        occupancy fused from the depth the map renders at up to `mesh_views` of `poses`.
+        """
+        field = self.field
+        views = poses[
+            torch.linspace(0, len(poses) - 1, min(len(poses), self.cfg.mesh_views)).round().long()
+        ]
+        small = self.camera.resized(min(self.camera.width, 160))
+        with torch.no_grad():
+            depths = torch.stack(
+                [render_image(field, small, T, self.render_cfg)[0].cpu() for T in views]
+            )
+        occupancy = meshing.fused_occupancy(
+            depths, views.cpu(), small, truncation=3 * self.cfg.mesh_voxel
+        )
 
         def color(p: torch.Tensor) -> torch.Tensor:
             return field(p.to(field.bound.device)).rgb.cpu()
@@ -252,6 +266,7 @@ class Mapper:
                     self.camera,
                     max_depth,
                     progress=progress,
+                    unknown_nan=True,
                 )
 
         try:

@@ -1,0 +1,62 @@
+"""Mesh the final map of a service run and evaluate it against the dataset's mesh.
+
+    python benchmarks/mesh_run.py OUT DATASET [--set mapper.mesh_voxel=0.05 ...]
+
+OUT is the folder of a `dimslam run` through the service: its `config.json` (the settings),
+`map.msgpack` (the mapper's last snapshot) and `trajectory.txt` (the final poses). The mesh is
+extracted exactly as the mapper does at the end of a run (`Mapper.extract_mesh`), written to
+OUT/mesh.ply and evaluated with the project's evaluator (the trajectory's Sim(3) applied).
+Useful for runs made with --no-mesh, or to compare mesh settings on one map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import dimslam.common  # noqa: F401  (OMP_WAIT_POLICY must be set before torch loads OpenMP)
+
+# isort: split
+import torch
+
+from dimslam.common.datasets import ReaderOptions, open_dataset
+from dimslam.common.mesh import write_mesh
+from dimslam.common.messages import MapSnapshot
+from dimslam.common.options import apply_overrides, flat_settings
+from dimslam.common.report import evaluate_files, format_metrics
+from dimslam.common.slam import PRESETS
+from dimslam.common.trajectory import read_tum
+from dimslam.mapper.mapper import Mapper
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("out", type=Path)
+    p.add_argument("dataset")
+    p.add_argument("--set", nargs="*", action="extend", default=[], metavar="SECTION.FIELD=V")
+    args = p.parse_args()
+    recorded = json.loads((args.out / "config.json").read_text())
+    settings = flat_settings({k: v for k, v in recorded.items() if k in ("map", "render", "loss",
+                              "tracker", "mapper", "width", "seed")})  # fmt: skip
+    settings.update(dict(s.split("=", 1) for s in args.set))
+    cfg = apply_overrides(PRESETS["paper"], settings)
+    camera = open_dataset(args.dataset, options=ReaderOptions(width=cfg.width or None)).camera
+    snap = MapSnapshot.from_bytes((args.out / "map.msgpack").read_bytes())
+    mapper = Mapper(
+        cfg.mapper, cfg.map, cfg.loss, cfg.render, cfg.tracker.overlap,
+        cfg.tracker.overlap_pixels, camera, torch.device("cpu"), torch.Generator(),
+    )  # fmt: skip
+    mapper.field.load_state_dict({k: torch.from_numpy(v) for k, v in snap.state.items()})
+    poses = torch.from_numpy(read_tum(args.out / "trajectory.txt").poses).float()
+    started = time.perf_counter()
+    mesh = mapper.extract_mesh(poses, cfg.render.far)
+    print(f"mesh: {len(mesh.faces)} faces in {time.perf_counter() - started:.1f} s")
+    write_mesh(mesh, args.out / "mesh.ply")
+    metrics = evaluate_files(args.out / "trajectory.txt", args.dataset, mesh=args.out / "mesh.ply")
+    print(format_metrics(metrics))
+
+
+if __name__ == "__main__":
+    main()
