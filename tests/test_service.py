@@ -241,3 +241,39 @@ def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):
     )
     gt = read_tum(sequence / "groundtruth.txt")
     assert evaluate_trajectory(est, gt).ate_rmse_m < 0.04
+
+
+def test_start_order_is_free_and_sigterm_flushes_every_output(sequence, tmp_path):
+    """Tracker and camera first: frames wait for a mapper started later; then SIGTERM to both
+    service processes mid-stream: each exits 0 promptly with its outputs written."""
+    svc = Service(tmp_path, "order")
+    out = tmp_path / "out"
+    transport = TransportConfig(svc.session, connect=(svc.tracker_ep, svc.mapper_ep))
+    with open_session(transport, "test") as zs:
+        keys = Keys(svc.session)
+        poses = Inbox(1000, "poses")
+        sub = zs.declare_subscriber(keys.poses, poses.callback)
+        presence = Presence(zs, keys, "test")
+        try:
+            tracker = svc.start("tracker", "--out", str(out))
+            assert presence.wait_for("tracker", 60)
+            svc.start("camera", str(sequence))
+            assert poses.get(5) is None  # no mapper, no map: nothing can be tracked yet
+            mapper = svc.start("mapper", "--out", str(out))
+            seen = set()
+            while len(seen) < 16:
+                payload = poses.get(120)
+                assert payload is not None, "no pose after the mapper started"
+                seen.add(PoseMessage.from_bytes(payload).seq)
+            assert seen >= set(range(8))  # the frames held before the mapper came were tracked
+            for p in (tracker, mapper):
+                p.send_signal(signal.SIGTERM)
+            assert tracker.wait(30) == 0 and mapper.wait(30) == 0
+        finally:
+            svc.close()
+            presence.close()
+            sub.undeclare()
+    online = read_tum(out / "trajectory_online.txt")
+    final = read_tum(out / "trajectory.txt")
+    assert len(online) >= 16 and len(final) >= 13
+    assert (out / "map.msgpack").stat().st_size > 0
