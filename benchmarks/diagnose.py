@@ -37,8 +37,13 @@ from dimslam.common.options import apply_overrides
 from dimslam.common.render import render_image, render_pixels
 from dimslam.common.slam import PRESETS, Slam
 from dimslam.common.trajectory import Trajectory
-from dimslam.common.window import FrameState, TrackingLost, optimize_window, random_pixels
-from dimslam.tracker.tracker import constant_velocity
+from dimslam.common.window import (
+    FrameState,
+    TrackingLost,
+    constant_velocity,
+    optimize_window,
+    random_pixels,
+)
 
 
 def load(args):

@@ -33,9 +33,9 @@ from dimslam.common.progress import Progress
 from dimslam.common.render import RenderConfig
 from dimslam.common.report import evaluate_files, format_metrics
 from dimslam.common.trajectory import Trajectory, write_tum
-from dimslam.common.window import FrameState, TrackingLost
+from dimslam.common.window import FrameState, TrackingLost, constant_velocity
 from dimslam.mapper.mapper import Mapper, MapperConfig
-from dimslam.tracker.tracker import Tracker, TrackerConfig, constant_velocity
+from dimslam.tracker.tracker import Tracker, TrackerConfig
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,8 @@ PRESETS: dict[str, SlamConfig] = {
                 pixels=600,
                 iters=25,
                 window_keyframes=6,
-                init_iters=600,
+                init_grow_iters=40,
+                init_iters=200,
                 init_lr_scale=3.0,
                 prior_iters=60,
                 # Fusing rendered depth costs (grid points x views): 5 cm keeps it near a minute.
@@ -93,7 +94,8 @@ PRESETS: dict[str, SlamConfig] = {
                 pixels=256,
                 iters=8,
                 init_frames=8,
-                init_iters=300,
+                init_grow_iters=20,
+                init_iters=150,
                 init_lr_scale=3.0,
                 prior_iters=40,
                 window_keyframes=3,

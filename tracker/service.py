@@ -1,7 +1,7 @@
 """The tracking process's loop: frames in, poses out, mapping batches to the mapper.
 
 The steps are the single-process ones (`Tracker.track`, `Tracker.is_keyframe`,
-`constant_velocity`); what this module adds is the exchange:
+`window.constant_velocity`); what this module adds is the exchange:
 
 - Until the map exists, frames are collected; the first `init_frames` go to the mapper as
   batch 0, and the tracker waits for snapshot 1 (frames keep queueing meanwhile).
@@ -52,8 +52,8 @@ from dimslam.common.progress import Progress
 from dimslam.common.slam import SlamConfig, map_digest, release_images
 from dimslam.common.trajectory import Trajectory, write_tum
 from dimslam.common.transport import FRAME_QUEUE, Inbox, Keys, Presence, Rejects, Stop, publisher
-from dimslam.common.window import FrameState, TrackingLost
-from dimslam.tracker.tracker import Tracker, constant_velocity
+from dimslam.common.window import FrameState, TrackingLost, constant_velocity
+from dimslam.tracker.tracker import Tracker
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from dimslam.common import losses, pose
+from dimslam.common import losses
 from dimslam.common.camera import Camera
 from dimslam.common.objective import LossConfig
 from dimslam.common.options import option
@@ -56,12 +56,6 @@ class TrackResult:
     T_wc: torch.Tensor
     stats: WindowStats
     window: tuple[int, ...]
-
-
-def constant_velocity(previous: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
-    """The pose after `previous` if the motion from `before` to `previous` repeats."""
-    motion = pose.compose(pose.invert(before), previous)
-    return pose.normalize(pose.compose(previous, motion))
 
 
 class Tracker:

@@ -7,8 +7,8 @@ from dimslam.common.camera import Camera
 from dimslam.common.field import FieldOutput
 from dimslam.common.objective import LossConfig
 from dimslam.common.render import RenderConfig
-from dimslam.common.window import FrameState
-from dimslam.tracker.tracker import Tracker, TrackerConfig, constant_velocity
+from dimslam.common.window import FrameState, constant_velocity
+from dimslam.tracker.tracker import Tracker, TrackerConfig
 
 CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
 
