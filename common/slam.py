@@ -66,7 +66,7 @@ PRESETS: dict[str, SlamConfig] = {
         SlamConfig(
             render=RenderConfig(n_stratified=16, n_importance=8, importance_rounds=2),
             loss=LossConfig(smooth_blocks=64),
-            tracker=TrackerConfig(pixels=400, iters=20, local_frames=5, keyframes=4),
+            tracker=TrackerConfig(pixels=2000, iters=20, local_frames=5, keyframes=4),
             mapper=MapperConfig(
                 pixels=600,
                 iters=25,

@@ -1,9 +1,11 @@
 """Frames, keyframes and the window optimizer that the tracker and the mapper share.
 
 A `FrameState` is one input frame inside the system: its image on the compute device and its
-current pose estimate. `optimize_window` runs Adam on a window: pose increments (se(3) twists
-on the current estimates, design.md section 4) for the frames marked movable, plus whatever
-map parameter groups the caller passes (none for the tracker).
+current pose estimate. `minimize` runs Adam on an objective of a window: pose increments
+(se(3) twists on the current estimates, design.md section 4) for the frames marked movable,
+plus whatever map parameter groups the caller passes (none for the tracker).
+`optimize_window` is `minimize` on the window objective with pixels rendered at every
+iteration (mapping and initialization); the tracker brings its own objective.
 """
 
 from __future__ import annotations
@@ -71,6 +73,66 @@ def adam(groups: list[dict]) -> torch.optim.Adam:
 PixelSampler = Callable[[int], tuple[torch.Tensor, torch.Tensor]]
 """Iteration -> `(frame (M,) long, uv (M, 2) float)` pixels of the window to use."""
 
+Objective = Callable[[int, torch.Tensor], tuple[torch.Tensor, WindowLoss]]
+"""`(iteration, poses (F, 4, 4))` -> `(total to minimize, its terms for the stats)`."""
+
+
+def minimize(
+    frames: list[FrameState],
+    movable: list[bool],
+    objective: Objective,
+    iterations: int,
+    pose_lr: float,
+    map_groups: list[dict] | None = None,
+    max_loss: float = 10.0,
+) -> WindowStats:
+    """Adam on an objective of the window's poses (and map groups); write the poses back.
+
+    Args:
+        frames: the window.
+        movable: per frame, whether its pose is optimized (as an se(3) increment).
+        objective: the loss of the window at the current poses.
+        iterations: Adam steps.
+        pose_lr: learning rate of the pose twists.
+        map_groups: extra Adam parameter groups (grids, decoder) or None.
+        max_loss: a total loss above this (or non-finite) means the optimization diverged.
+
+    Raises:
+        TrackingLost: on divergence; the frames keep their poses from before the step.
+    """
+    start = torch.stack([f.T_wc for f in frames])
+    move = torch.tensor(movable, device=start.device)
+    twists = torch.zeros(int(move.sum()), 6, device=start.device, requires_grad=True)
+    groups = [{"params": [twists], "lr": pose_lr}] + list(map_groups or [])
+    optimizer = adam(groups)
+    stats = WindowStats()
+
+    def current() -> torch.Tensor:
+        poses = start.clone()
+        if twists.shape[0]:
+            poses[move] = pose.retract(start[move], twists)
+        return poses
+
+    for it in range(iterations):
+        total, result = objective(it, current())
+        value = total.item()
+        if not math.isfinite(value) or value > max_loss:
+            raise TrackingLost(f"optimization diverged at iteration {it} (loss {value:.4g})")
+        optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        optimizer.step()
+        stats.history.append(value)
+        stats.iterations = it + 1
+        stats.loss, stats.warp, stats.render = value, result.warp, result.render
+        stats.smooth, stats.warp_count = result.smooth, result.warp_count
+    with torch.no_grad():
+        final = pose.normalize(current())
+    if not torch.isfinite(final).all():
+        raise TrackingLost("poses became non-finite")
+    for f, T in zip(frames, final, strict=True):
+        f.T_wc = T.detach().clone()
+    return stats
+
 
 def optimize_window(
     field_fn: FieldFn,
@@ -110,44 +172,18 @@ def optimize_window(
         TrackingLost: on divergence; the frames keep their poses from before the step.
     """
     images = torch.stack([f.rgb for f in frames])
-    start = torch.stack([f.T_wc for f in frames])
-    move = torch.tensor(movable, device=start.device)
-    twists = torch.zeros(int(move.sum()), 6, device=start.device, requires_grad=True)
-    groups = [{"params": [twists], "lr": pose_lr}] + list(map_groups or [])
-    optimizer = adam(groups)
-    stats = WindowStats()
 
-    def current() -> torch.Tensor:
-        poses = start.clone()
-        if twists.shape[0]:
-            poses[move] = pose.retract(start[move], twists)
-        return poses
-
-    for it in range(iterations):
+    def objective(it: int, poses: torch.Tensor) -> tuple[torch.Tensor, WindowLoss]:
         frame, uv = pixels(it)
         result = window_objective(
-            field_fn, images, current(), camera, frame, uv, loss_cfg, render_cfg, generator, smooth
+            field_fn, images, poses, camera, frame, uv, loss_cfg, render_cfg, generator, smooth
         )
         total = result.total
         if extra_loss is not None:
             total = total + extra_loss(result, frame)
-        value = total.item()
-        if not math.isfinite(value) or value > max_loss:
-            raise TrackingLost(f"optimization diverged at iteration {it} (loss {value:.4g})")
-        optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        optimizer.step()
-        stats.history.append(value)
-        stats.iterations = it + 1
-        stats.loss, stats.warp, stats.render = value, result.warp, result.render
-        stats.smooth, stats.warp_count = result.smooth, result.warp_count
-    with torch.no_grad():
-        final = pose.normalize(current())
-    if not torch.isfinite(final).all():
-        raise TrackingLost("poses became non-finite")
-    for f, T in zip(frames, final, strict=True):
-        f.T_wc = T.detach().clone()
-    return stats
+        return total, result
+
+    return minimize(frames, movable, objective, iterations, pose_lr, map_groups, max_loss)
 
 
 def constant_velocity(previous: torch.Tensor, before: torch.Tensor) -> torch.Tensor:

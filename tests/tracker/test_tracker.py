@@ -53,3 +53,36 @@ def test_keyframe_by_flow_and_by_lost_overlap():
     assert not tracker(keyframe_flow_px=100.0, keyframe_overlap=0.0).is_keyframe(
         wall, frame_at(back), kf
     )
+
+
+def textured_wall_image(T_wc: torch.Tensor) -> torch.Tensor:
+    """`(48, 64, 3)` view of the wall z = 2 painted with smooth stripes, seen from `T_wc`."""
+    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
+    d_c = CAM.unproject(torch.stack([u, v], -1), torch.ones_like(u))  # rays with unit z
+    d_w = d_c @ T_wc[:3, :3].T
+    o = T_wc[:3, 3]
+    p = o + d_w * ((2.0 - o[2]) / d_w[..., 2])[..., None]
+    x, y = p[..., 0], p[..., 1]
+    phases = torch.tensor([0.0, 2.1, 4.2])
+    return 0.5 + 0.2 * torch.sin(9 * x[..., None] + phases) * torch.cos(7 * y[..., None] - phases)
+
+
+def test_tracking_recovers_a_pose_from_fixed_frames():
+    """The newest frame starts 2 cm and 1 degree off; warping the fixed frame's patches at the
+    map's depth into it brings it back."""
+    source = pose.exp_se3(torch.tensor([0.02, -0.01, 0.0, 0.0, 0.01, 0.0]))
+    truth = pose.exp_se3(torch.tensor([0.08, 0.03, 0.05, 0.02, -0.03, 0.01]))
+    guess = pose.retract(truth, torch.tensor([0.015, -0.01, 0.01, 0.01, -0.008, 0.005]))
+    fixed = FrameState(0, 0.0, textured_wall_image(source), source, keyframe=True)
+    newest = FrameState(1, 0.1, textured_wall_image(truth), guess)
+
+    def error(T: torch.Tensor) -> float:
+        return float(pose.log_se3(pose.compose(pose.invert(truth), T)).norm())
+
+    before = error(newest.T_wc)
+    result = tracker(pixels=400, iters=60, pose_lr=3e-3, optimize_last=1).track(
+        wall, [fixed, newest], []
+    )
+    assert result.window == (0, 1) and result.stats.iterations == 60
+    assert torch.allclose(fixed.T_wc, source, atol=1e-6)  # the fixed frame stays put
+    assert error(newest.T_wc) < 0.2 * before
