@@ -51,6 +51,8 @@ from dimslam.mapper.mapper import Mapper
 log = logging.getLogger(__name__)
 
 WAIT_S = 0.5
+STOP_GRACE_S = 2.0
+"""At a stop, how long the mapper waits for the tracker's last batch and end of stream."""
 
 
 class MapperService:
@@ -156,25 +158,16 @@ class MapperService:
             payload = self.batches_in.get(WAIT_S)
             if payload is None:
                 continue
-            batches = []
-            for p in [payload, *self.batches_in.drain()]:
-                try:
-                    kind = message_type(p)
-                    if kind == EndOfStream.TYPE:
-                        self.ended = True
-                    elif kind == MapSnapshot.TYPE:
-                        self._seed(MapSnapshot.from_bytes(p))
-                    else:
-                        batches.append(MappingBatch.from_bytes(p))
-                except MessageError as e:
-                    self.rejects("mapping", e)
-            if batches:
+            batches = self._parse([payload, *self.batches_in.drain()])
+            if batches and self._receive(batches):
                 self._step(batches)
             if self.ended:
                 self._finish()
                 if self.exit_at_end:
                     break
                 self.ended = False
+        if self.stop:
+            self._keep_pending()
         self._answer_meshes()
         log.info(
             "%d rounds (median %.1f s), map version %d, %d keyframes, %d rejected messages",
@@ -190,8 +183,41 @@ class MapperService:
     def keyframes(self) -> list[FrameState]:
         return [f for f in self.frames if f.keyframe]
 
-    def _step(self, batches: list[MappingBatch]) -> None:
-        started = time.perf_counter()
+    def _parse(self, payloads: list[bytes]) -> list[MappingBatch]:
+        """The mapping batches among `payloads`; an end of stream or a seed map is noted."""
+        batches = []
+        for p in payloads:
+            try:
+                kind = message_type(p)
+                if kind == EndOfStream.TYPE:
+                    self.ended = True
+                elif kind == MapSnapshot.TYPE:
+                    self._seed(MapSnapshot.from_bytes(p))
+                else:
+                    batches.append(MappingBatch.from_bytes(p))
+            except MessageError as e:
+                self.rejects("mapping", e)
+        return batches
+
+    def _keep_pending(self) -> None:
+        """At a stop: the frames still in flight (a tracker stopped at the same time flushes its
+        last batch) join the trajectory at their tracked poses, without a mapping round. Waits
+        for the tracker's end of stream at most `STOP_GRACE_S`."""
+        deadline = time.monotonic() + STOP_GRACE_S
+        kept = 0
+        while not self.ended and (left := deadline - time.monotonic()) > 0:
+            payload = self.batches_in.get(min(left, WAIT_S))
+            if payload is None:
+                continue
+            batches = self._parse([payload, *self.batches_in.drain()])
+            batches = [b for b in batches if b.round > 0]  # never a new stream at a stop
+            if batches and self.version > 0 and self._receive(batches):
+                kept += sum(len(b.frames) for b in batches)
+        if kept:
+            log.info("stopped: %d unmapped frames kept at their tracked poses", kept)
+
+    def _receive(self, batches: list[MappingBatch]) -> bool:
+        """Add the batches' frames; True if there is a map (or a first batch) to run a round on."""
         for batch in batches:
             if batch.round == 0:
                 self._reset(batch.camera)
@@ -208,8 +234,12 @@ class MapperService:
                 rgb = torch.from_numpy(f.rgb).to(self.device).float() / 255.0
                 T = torch.from_numpy(f.T_wc).float().to(self.device)
                 self.frames.append(FrameState(f.seq, f.timestamp, rgb, T, f.keyframe))
-        if self.mapper is None or not self.frames:
-            return
+        return self.mapper is not None and bool(self.frames)
+
+    def _step(self, batches: list[MappingBatch]) -> None:
+        """One round on the frames just received: initialization first, then mapping."""
+        assert self.mapper is not None
+        started = time.perf_counter()
         if self.version == 0:
             result = self.mapper.initialize(self.frames)
             log.info("initialized on %d frames (loss %.4f)", len(self.frames), result.stats.loss)

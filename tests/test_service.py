@@ -182,7 +182,8 @@ def test_a_restarted_mapper_gets_the_trackers_map(sequence, tmp_path):
             mapper = svc.start("mapper")
             svc.start("tracker")
             assert presence.wait_for("tracker", 60) and presence.wait_for("mapper", 60)
-            svc.start("camera", str(sequence))
+            # 2 frames/s: the stream outlasts the restarted mapper's start (seconds on 2 cores).
+            svc.start("camera", str(sequence), "--rate", "2")
             restarted = []
 
             def restart(count: int) -> None:
