@@ -8,6 +8,7 @@ Each half is checked against ground truth before blaming the whole:
     python benchmarks/diagnose.py mapper SEQ       # map learned by the warping loss from GT poses
     python benchmarks/diagnose.py init SEQ         # initialization: poses and depth vs GT
     python benchmarks/diagnose.py run SEQ          # the whole system, error of every new frame
+                                                   # (--depth-every N: and the map's scale)
 
 SEQ is a TUM-layout sequence with `depth.txt` (exact depth: `dimslam synth` output or
 ../shared/data/room0). Settings: `--preset` plus `section.field=value` overrides. Ground truth
@@ -221,7 +222,7 @@ def cmd_mapper(args) -> None:
             0.0,
             cfg.loss,
             cfg.render,
-            map_groups=slam.mapper._groups(cfg.mapper.init_lr_scale),
+            map_groups=slam.mapper._init_groups(cfg.mapper.init_lr_scale),
             generator=slam.generator,
             smooth=True,
             max_loss=float("inf"),
@@ -250,9 +251,21 @@ def cmd_init(args) -> None:
     print(f"frame 0 (scaled): {depth_error(slam, camera, slam.frames[0].T_wc, depths[0], scale)}")
 
 
+def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: float) -> str:
+    """The map's scale at a frame: rendered over true depth (times the initialization's scale,
+    so 1 means the scale the system started with), median and spread over the pixels."""
+    d, _ = render_image(slam.mapper.field, camera, frame.T_wc, slam.cfg.render)
+    ratio = scale * d.numpy() / np.maximum(gt, 1e-6)
+    ratio = ratio[gt > 0]
+    med = float(np.median(ratio))
+    within = float(np.mean(np.abs(ratio / med - 1) < 0.05))
+    return f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%)"
+
+
 def cmd_run(args) -> None:
     """The whole system; the error of each new frame after aligning on the initialization."""
     cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera) if args.depth_every else None
     slam = Slam(cfg, camera, torch.device("cpu"))
     alignment = None
     for n, f in enumerate(frames, 1):
@@ -274,10 +287,14 @@ def cmd_run(args) -> None:
             continue
         T = alignment.apply_poses(est.poses[-1:])[0]
         drift = np.linalg.norm(T[:3, 3] - gt.poses[-1][:3, 3])
+        scale = ""
+        if depths is not None and (n - 1) % args.depth_every == 0:
+            scale = depth_scale(slam, camera, slam.frames[-1], depths[n - 1], alignment.s)
         print(
             f"frame {n - 1:3d} kf={int(slam.frames[-1].keyframe)} keyframes {len(slam.keyframes)} "
             f"drift {100 * drift:6.2f} cm  ATE so far {100 * m.ate_rmse_m:6.2f} cm  "
-            f"loss {slam.last_loss:.4f}"
+            f"loss {slam.last_loss:.4f} {scale}",
+            flush=True,
         )
 
 
@@ -295,6 +312,12 @@ def main() -> None:
     parser.add_argument("--frame", type=int, default=19, help="frame of single / landscape")
     parser.add_argument("--iters", type=int, default=40, help="iterations of single")
     parser.add_argument("--shift", type=float, default=-0.018, help="anchor shift of landscape")
+    parser.add_argument(
+        "--depth-every",
+        type=int,
+        default=0,
+        help="run: every N frames, the map's depth scale at the newest frame (0: never)",
+    )
     parser.add_argument(
         "--set", nargs="*", action="extend", default=[], metavar="SECTION.FIELD=VALUE"
     )

@@ -47,7 +47,9 @@ class MapperConfig:
     pixels: int = option(3000, "Random pixels per mapping iteration.")
     iters: int = option(100, "Adam iterations per mapping round.")
     grid_lr: float = option(1e-3, "Learning rate of the feature grids.")
-    decoder_lr: float = option(1e-3, "Learning rate of the decoder (0: frozen after init).")
+    decoder_lr: float = option(
+        1e-3, "Learning rate of the decoder in mapping rounds (0: frozen after initialization)."
+    )
     pose_lr: float = option(1e-2, "Learning rate of the window's pose increments.")
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
@@ -97,13 +99,16 @@ class Mapper:
         self.field = Field(map_cfg, device=device)
         self.margin = max(loss_cfg.patch_sizes) // 2
 
-    def _groups(self, scale: float = 1.0, decoder: bool = True) -> list[dict]:
+    def _groups(self, decoder_lr: float, scale: float = 1.0) -> list[dict]:
         groups = [{"params": self.field.grid_parameters(), "lr": self.cfg.grid_lr * scale}]
-        if decoder and self.cfg.decoder_lr > 0:
-            groups.append(
-                {"params": self.field.decoder_parameters(), "lr": self.cfg.decoder_lr * scale}
-            )
+        if decoder_lr > 0:
+            groups.append({"params": self.field.decoder_parameters(), "lr": decoder_lr * scale})
         return groups
+
+    def _init_groups(self, scale: float) -> list[dict]:
+        """Grids and decoder both learn while the map is built from nothing (a decoder frozen
+        in mapping rounds learns at the grids' rate here)."""
+        return self._groups(self.cfg.decoder_lr or self.cfg.grid_lr, scale)
 
     def _sampler(self, n_frames: int):
         device = self.field.bound.device
@@ -121,7 +126,7 @@ class Mapper:
         Returns:
             The final mean absolute depth error, map units.
         """
-        optimizer = adam(self._groups(scale=10.0))
+        optimizer = adam(self._init_groups(10.0))
         device = self.field.bound.device
         error = float("nan")
         for _ in range(self.cfg.prior_iters):
@@ -168,7 +173,7 @@ class Mapper:
                 self.cfg.pose_lr,
                 self.loss_cfg,
                 self.render_cfg,
-                map_groups=self._groups(scale=self.cfg.init_lr_scale),
+                map_groups=self._init_groups(self.cfg.init_lr_scale),
                 generator=self.generator,
                 smooth=True,
                 extra_loss=gauge,
@@ -210,7 +215,7 @@ class Mapper:
             self.cfg.pose_lr,
             self.loss_cfg,
             self.render_cfg,
-            map_groups=self._groups(),
+            map_groups=self._groups(self.cfg.decoder_lr),
             generator=self.generator,
             smooth=True,
             max_loss=float("inf"),
@@ -248,7 +253,7 @@ class Mapper:
                 0.0,
                 self.loss_cfg,
                 self.render_cfg,
-                map_groups=self._groups(decoder=False),
+                map_groups=self._groups(0.0),
                 generator=self.generator,
                 smooth=True,
                 max_loss=float("inf"),
