@@ -69,7 +69,7 @@ PRESETS: dict[str, SlamConfig] = {
             tracker=TrackerConfig(pixels=2000, iters=20, local_frames=5, keyframes=4),
             mapper=MapperConfig(
                 pixels=600,
-                iters=25,
+                iters=50,
                 window_keyframes=6,
                 init_grow_iters=40,
                 init_iters=200,
