@@ -35,7 +35,10 @@ def sequence(tmp_path_factory):
 
 def test_run_through_the_service(sequence, tmp_path):
     out = tmp_path / "run"
-    assert main(["run", str(sequence), "--out", str(out), "--preset", "tiny", "--no-mesh"]) == 0
+    # Mapping rounds of 40 iterations are slower than tracking 5 frames: a tracker left free
+    # would run ahead and the mapper would take several batches in one round.
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh"]
+    assert main(["run", str(sequence), "--out", str(out), *args]) == 0
     assert len(read_tum(out / "trajectory.txt")) == FRAMES
     assert len(read_tum(out / "trajectory_online.txt")) == FRAMES
     assert len(read_tum(out / "poses_received.txt")) == FRAMES  # no pose lost on the way
@@ -44,6 +47,9 @@ def test_run_through_the_service(sequence, tmp_path):
     # A lost tracker scores tens of centimetres; a working one ~0.5-1 cm here.
     assert metrics["ate_rmse_m"] < 0.04
     assert metrics["online_ate_rmse_m"] < 0.04
+    # Initialization plus one round per batch (frames 10, 15, ..., 35), none taken together:
+    # the tracker stays within one round of the map (launch.MAP_LAG).
+    assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
 
 
 def _start(module: str, *args: str, log) -> subprocess.Popen:

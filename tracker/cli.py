@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 
 from dimslam.common import logs
@@ -24,12 +25,29 @@ DESCRIPTION = (
 )
 
 
+def _rounds(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dimslam-tracker", description=DESCRIPTION)
     p.add_argument(
         "--out",
         type=Path,
         help="folder for trajectory_online.txt (every pose as first published), written at exit",
+    )
+    p.add_argument(
+        "--map-lag",
+        type=_rounds,
+        metavar="ROUNDS",
+        help="bounded staleness, for offline runs where the mapper is slower than the tracker: "
+        "before a new frame, wait while more than ROUNDS mapping batches sent to a live mapper "
+        "have no snapshot yet (1: track the next round's frames while the mapper maps one; "
+        "0: wait for every round). Default: never wait, as a live camera needs. A mapper that "
+        "is gone is never waited for.",
     )
     add_compute_options(p)
     add_transport_options(p)
@@ -42,7 +60,8 @@ def serve(args: argparse.Namespace) -> int:
         if args.out is not None:
             service.write(args.out)
 
-    return run_service(args, "tracker", TrackerService, flush)
+    build = partial(TrackerService, map_lag=args.map_lag)
+    return run_service(args, "tracker", build, flush)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

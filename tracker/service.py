@@ -95,11 +95,15 @@ class TrackerService:
         session: zenoh.Session,
         keys: Keys,
         stop: Stop,
+        map_lag: int | None = None,
     ) -> None:
         self.cfg = cfg
         self.device = device
         self.keys = keys
         self.stop = stop
+        # Bounded staleness (offline runs): at most this many sent batches unmapped before the
+        # next frame is tracked; None: never wait (live cameras).
+        self.map_lag = map_lag
         self.digest = map_digest(cfg)
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         self.field = Field(cfg.map, device=device).requires_grad_(False)
@@ -233,7 +237,7 @@ class TrackerService:
                     self._reseed_mapper()
                 self._apply_snapshots()
                 self._flush_outbox()
-                if self.init_sent and not self.initialized:
+                if (self.init_sent and not self.initialized) or self._map_too_old():
                     self.maps_in_wait()
                     continue
                 payload = self.frames_in.get(WAIT_S)
@@ -336,6 +340,15 @@ class TrackerService:
             self._send_batch(self.pending)
             self.pending = []
         release_images(self.frames, self.cfg)
+
+    def _map_too_old(self) -> bool:
+        """With `map_lag`: more batches sent to a live mapper are unmapped than it allows."""
+        return (
+            self.map_lag is not None
+            and self.initialized
+            and self.round - 1 - self.map_round > self.map_lag
+            and self.presence.alive("mapper")
+        )
 
     def _mapper_busy(self) -> bool:
         """Whether a batch sent to a live mapper has no snapshot yet (a round is running)."""
