@@ -5,9 +5,10 @@ The steps are the single-process ones (`Mapper.initialize`, `Mapper.map`,
 
 - Batch 0 holds the first frames: the mapper initializes on them and publishes snapshot 1.
 - Every later batch brings the frames since the previous one, with their tracked poses and
-  keyframe flags. All batches pending when a round starts are taken together (a mapper that
-  falls behind maps everything new in its next round: the stated backpressure policy); the
-  round runs on the newest `every` frames plus overlapping keyframes, exactly as in one process.
+  keyframe flags. All batches pending when a round starts are taken together (the
+  backpressure policy of a mapper that falls behind); the round runs on the newest `every`
+  frames plus overlapping keyframes, exactly as in one process, so the frames in between keep
+  their tracked poses. Offline runs avoid this with `dimslam-tracker --map-lag`.
 - After each round: a versioned snapshot (map tensors, refined poses of every keyframe and of
   the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
 - A tracker whose mapper was restarted sends its own snapshot on the mapping topic, then its
