@@ -20,17 +20,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from dimslam.common import pose
 from dimslam.common.datasets import open_dataset
 from dimslam.common.evaluation import associate, evaluate_trajectory, umeyama
 from dimslam.common.trajectory import read_tum
-
-
-def rotation_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
 def segments(est_path: str, dataset: str, length: int) -> tuple[dict, list[dict]]:
@@ -39,7 +38,7 @@ def segments(est_path: str, dataset: str, length: int) -> tuple[dict, list[dict]
     if gt is None:
         raise SystemExit(f"error: {dataset} has no ground truth")
     whole = evaluate_trajectory(est, gt)
-    idx_est, idx_gt = associate(est.timestamps, gt.timestamps, 0.02)
+    idx_est, idx_gt = associate(est.timestamps, gt.timestamps)  # as evaluate_trajectory
     E = whole.alignment.apply_poses(est.poses[idx_est])
     G = gt.poses[idx_gt]
     rows = []
@@ -47,6 +46,7 @@ def segments(est_path: str, dataset: str, length: int) -> tuple[dict, list[dict]
         e, g = E[a : a + length, :3, 3], G[a : a + length, :3, 3]
         local = umeyama(e, g)
         err = np.linalg.norm(local.apply_points(e) - g, axis=1)
+        turn = G[a, :3, :3].T @ G[a + length - 1, :3, :3]
         rows.append(
             {
                 "first": a,
@@ -55,7 +55,7 @@ def segments(est_path: str, dataset: str, length: int) -> tuple[dict, list[dict]
                 "local_ate_m": float(np.sqrt(np.mean(err**2))),
                 "local_scale": float(local.s),
                 "path_m": float(np.linalg.norm(np.diff(g, axis=0), axis=1).sum()),
-                "turn_deg": rotation_deg(G[a, :3, :3].T @ G[a + length - 1, :3, :3]),
+                "turn_deg": math.degrees(pose.rotation_angle(torch.from_numpy(turn)).item()),
             }
         )
     return whole.to_dict(), rows

@@ -341,18 +341,19 @@ class TrackerService:
             self.pending = []
         release_images(self.frames, self.cfg)
 
+    def _unmapped(self) -> int:
+        """Batches sent to a live mapper that no snapshot covers yet (0 without a mapper)."""
+        if not self.presence.alive("mapper"):
+            return 0
+        return max(0, self.round - 1 - self.map_round)
+
     def _map_too_old(self) -> bool:
         """With `map_lag`: more batches sent to a live mapper are unmapped than it allows."""
-        return (
-            self.map_lag is not None
-            and self.initialized
-            and self.round - 1 - self.map_round > self.map_lag
-            and self.presence.alive("mapper")
-        )
+        return self.map_lag is not None and self.initialized and self._unmapped() > self.map_lag
 
     def _mapper_busy(self) -> bool:
         """Whether a batch sent to a live mapper has no snapshot yet (a round is running)."""
-        return self.presence.alive("mapper") and self.map_round < self.round - 1
+        return self._unmapped() > 0
 
     def _publish_pose(self, state: FrameState) -> None:
         T = state.T_wc.detach().cpu().double().numpy()
