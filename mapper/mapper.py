@@ -51,6 +51,9 @@ class MapperConfig:
         1e-3, "Learning rate of the decoder in mapping rounds (0: frozen after initialization)."
     )
     pose_lr: float = option(1e-2, "Learning rate of the window's pose increments.")
+    move_keyframes: bool = option(
+        True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
+    )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
     init_grow_iters: int = option(
@@ -208,7 +211,7 @@ class Mapper:
         stats = optimize_window(
             self.field,
             window,
-            [f.index != 0 for f in window],
+            [f.index != 0 and (self.cfg.move_keyframes or id(f) in in_recent) for f in window],
             self.camera,
             self._sampler(len(window)),
             self.cfg.iters,
