@@ -1,16 +1,15 @@
-"""Mapper choices that need no trained map: which pixels a round uses, which poses it moves."""
+"""Mapper choices that need no trained map: which poses a mapping round moves."""
 
 import torch
+from walls import CAM, textured_wall_image
 
 from dimslam.common import pose
-from dimslam.common.camera import Camera
 from dimslam.common.field import MapConfig
 from dimslam.common.objective import LossConfig
 from dimslam.common.render import RenderConfig
 from dimslam.common.window import FrameState
 from dimslam.mapper.mapper import Mapper, MapperConfig
 
-CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
 SMALL_MAP = MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0))
 
 
@@ -29,25 +28,12 @@ def mapper(**kw) -> Mapper:
     )
 
 
-def wall_image(T_wc: torch.Tensor) -> torch.Tensor:
-    """The view of a wall z = 2 painted with smooth stripes, from `T_wc`."""
-    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
-    uv = torch.stack([u, v], dim=-1).view(-1, 2)
-    rays = CAM.unproject(uv, torch.ones(uv.shape[0]))
-    R, t = T_wc[:3, :3], T_wc[:3, 3]
-    d = rays @ R.t()
-    s = (2.0 - t[2]) / d[:, 2]
-    x = t + s[:, None] * d
-    value = 0.5 + 0.2 * torch.sin(6 * x[:, 0]) * torch.cos(5 * x[:, 1])
-    return value.view(48, 64, 1).expand(48, 64, 3).contiguous()
-
-
 def test_anchored_keyframes_keep_their_poses_while_recent_frames_move():
     poses = [pose.make_pose(torch.eye(3), torch.tensor([0.05 * i, 0.0, 0.0])) for i in range(6)]
     for move in (False, True):
         # Indices from 1: frame 0, the gauge, never moves either way.
         frames = [
-            FrameState(i + 1, i / 30, wall_image(T), T.clone(), keyframe=i < 3)
+            FrameState(i + 1, i / 30, textured_wall_image(T), T.clone(), keyframe=i < 3)
             for i, T in enumerate(poses)
         ]
         m = mapper(pixels=64, iters=3, window_keyframes=3, move_keyframes=move)

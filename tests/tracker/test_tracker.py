@@ -1,16 +1,14 @@
 """Tracker pieces that need no trained map: the motion model and the keyframe rules."""
 
 import torch
+from walls import CAM, textured_wall_image
 
 from dimslam.common import pose
-from dimslam.common.camera import Camera
 from dimslam.common.field import FieldOutput
 from dimslam.common.objective import LossConfig
 from dimslam.common.render import RenderConfig
 from dimslam.common.window import FrameState, constant_velocity
 from dimslam.tracker.tracker import Tracker, TrackerConfig
-
-CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
 
 
 def wall(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
@@ -53,18 +51,6 @@ def test_keyframe_by_flow_and_by_lost_overlap():
     assert not tracker(keyframe_flow_px=100.0, keyframe_overlap=0.0).is_keyframe(
         wall, frame_at(back), kf
     )
-
-
-def textured_wall_image(T_wc: torch.Tensor) -> torch.Tensor:
-    """`(48, 64, 3)` view of the wall z = 2 painted with smooth stripes, seen from `T_wc`."""
-    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
-    d_c = CAM.unproject(torch.stack([u, v], -1), torch.ones_like(u))  # rays with unit z
-    d_w = d_c @ T_wc[:3, :3].T
-    o = T_wc[:3, 3]
-    p = o + d_w * ((2.0 - o[2]) / d_w[..., 2])[..., None]
-    x, y = p[..., 0], p[..., 1]
-    phases = torch.tensor([0.0, 2.1, 4.2])
-    return 0.5 + 0.2 * torch.sin(9 * x[..., None] + phases) * torch.cos(7 * y[..., None] - phases)
 
 
 def test_tracking_recovers_a_pose_from_fixed_frames():
