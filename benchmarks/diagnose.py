@@ -41,6 +41,7 @@ from dimslam.common.trajectory import Trajectory
 from dimslam.common.window import (
     FrameState,
     TrackingLost,
+    adam,
     constant_velocity,
     optimize_window,
     random_pixels,
@@ -222,7 +223,7 @@ def cmd_mapper(args) -> None:
             0.0,
             cfg.loss,
             cfg.render,
-            map_groups=slam.mapper._init_groups(cfg.mapper.init_lr_scale),
+            map_optimizer=adam(slam.mapper._init_groups(cfg.mapper.init_lr_scale)),
             generator=slam.generator,
             smooth=True,
             max_loss=float("inf"),

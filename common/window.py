@@ -83,10 +83,10 @@ def minimize(
     objective: Objective,
     iterations: int,
     pose_lr: float,
-    map_groups: list[dict] | None = None,
+    map_optimizer: torch.optim.Optimizer | None = None,
     max_loss: float = 10.0,
 ) -> WindowStats:
-    """Adam on an objective of the window's poses (and map groups); write the poses back.
+    """Adam on an objective of the window's poses (and the map); write the poses back.
 
     Args:
         frames: the window.
@@ -94,7 +94,9 @@ def minimize(
         objective: the loss of the window at the current poses.
         iterations: Adam steps.
         pose_lr: learning rate of the pose twists.
-        map_groups: extra Adam parameter groups (grids, decoder) or None.
+        map_optimizer: the optimizer of the map's parameters (grids, decoder), stepped with
+            the poses; None leaves the map fixed. The caller owns it, so its moments may
+            outlive one call (`MapperConfig.keep_adam`).
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
 
     Raises:
@@ -103,8 +105,9 @@ def minimize(
     start = torch.stack([f.T_wc for f in frames])
     move = torch.tensor(movable, device=start.device)
     twists = torch.zeros(int(move.sum()), 6, device=start.device, requires_grad=True)
-    groups = [{"params": [twists], "lr": pose_lr}] + list(map_groups or [])
-    optimizer = adam(groups)
+    optimizers = [adam([{"params": [twists], "lr": pose_lr}])]
+    if map_optimizer is not None:
+        optimizers.append(map_optimizer)
     stats = WindowStats()
 
     def current() -> torch.Tensor:
@@ -118,9 +121,11 @@ def minimize(
         value = total.item()
         if not math.isfinite(value) or value > max_loss:
             raise TrackingLost(f"optimization diverged at iteration {it} (loss {value:.4g})")
-        optimizer.zero_grad(set_to_none=True)
+        for optimizer in optimizers:
+            optimizer.zero_grad(set_to_none=True)
         total.backward()
-        optimizer.step()
+        for optimizer in optimizers:
+            optimizer.step()
         stats.history.append(value)
         stats.iterations = it + 1
         stats.loss, stats.warp, stats.render = value, result.warp, result.render
@@ -144,7 +149,7 @@ def optimize_window(
     pose_lr: float,
     loss_cfg: LossConfig,
     render_cfg: RenderConfig,
-    map_groups: list[dict] | None = None,
+    map_optimizer: torch.optim.Optimizer | None = None,
     generator: torch.Generator | None = None,
     smooth: bool = False,
     extra_loss: Callable[[WindowLoss, torch.Tensor], torch.Tensor] | None = None,
@@ -161,7 +166,7 @@ def optimize_window(
         iterations: Adam steps.
         pose_lr: learning rate of the pose twists.
         loss_cfg, render_cfg: objective and ray sampling.
-        map_groups: extra Adam parameter groups (grids, decoder) or None.
+        map_optimizer: the map's optimizer (see `minimize`) or None.
         generator: randomness for ray sampling.
         smooth: include the smoothness term.
         extra_loss: `(window_loss, frame_of_pixels) -> tensor` added to the total (e.g. the
@@ -183,7 +188,7 @@ def optimize_window(
             total = total + extra_loss(result, frame)
         return total, result
 
-    return minimize(frames, movable, objective, iterations, pose_lr, map_groups, max_loss)
+    return minimize(frames, movable, objective, iterations, pose_lr, map_optimizer, max_loss)
 
 
 def constant_velocity(previous: torch.Tensor, before: torch.Tensor) -> torch.Tensor:

@@ -51,6 +51,11 @@ class MapperConfig:
         1e-3, "Learning rate of the decoder in mapping rounds (0: frozen after initialization)."
     )
     pose_lr: float = option(1e-2, "Learning rate of the window's pose increments.")
+    keep_adam: bool = option(
+        False,
+        "Mapping rounds share one Adam state for the map (False: a fresh one each round, "
+        "as the paper's code).",
+    )
     move_keyframes: bool = option(
         True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
     )
@@ -101,12 +106,25 @@ class Mapper:
         self.generator = generator
         self.field = Field(map_cfg, device=device)
         self.margin = max(loss_cfg.patch_sizes) // 2
+        self._map_optimizer: torch.optim.Optimizer | None = None
 
     def _groups(self, decoder_lr: float, scale: float = 1.0) -> list[dict]:
         groups = [{"params": self.field.grid_parameters(), "lr": self.cfg.grid_lr * scale}]
         if decoder_lr > 0:
             groups.append({"params": self.field.decoder_parameters(), "lr": decoder_lr * scale})
         return groups
+
+    def _round_optimizer(self) -> torch.optim.Optimizer:
+        """The map's optimizer for a mapping round: fresh, or the one kept across rounds.
+
+        A kept Adam remembers each parameter's gradient statistics: a voxel whose gradient
+        has only been noise moves less, one seen for the first time moves more.
+        """
+        if not self.cfg.keep_adam:
+            return adam(self._groups(self.cfg.decoder_lr))
+        if self._map_optimizer is None:
+            self._map_optimizer = adam(self._groups(self.cfg.decoder_lr))
+        return self._map_optimizer
 
     def _init_groups(self, scale: float) -> list[dict]:
         """Grids and decoder both learn while the map is built from nothing (a decoder frozen
@@ -176,7 +194,7 @@ class Mapper:
                 self.cfg.pose_lr,
                 self.loss_cfg,
                 self.render_cfg,
-                map_groups=self._init_groups(self.cfg.init_lr_scale),
+                map_optimizer=adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
                 smooth=True,
                 extra_loss=gauge,
@@ -218,7 +236,7 @@ class Mapper:
             self.cfg.pose_lr,
             self.loss_cfg,
             self.render_cfg,
-            map_groups=self._groups(self.cfg.decoder_lr),
+            map_optimizer=self._round_optimizer(),
             generator=self.generator,
             smooth=True,
             max_loss=float("inf"),
@@ -256,7 +274,7 @@ class Mapper:
                 0.0,
                 self.loss_cfg,
                 self.render_cfg,
-                map_groups=self._groups(0.0),
+                map_optimizer=adam(self._groups(0.0)),
                 generator=self.generator,
                 smooth=True,
                 max_loss=float("inf"),

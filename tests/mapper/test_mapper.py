@@ -44,3 +44,25 @@ def test_anchored_keyframes_keep_their_poses_while_recent_frames_move():
         moved = [not torch.equal(f.T_wc, T) for f, T in zip(frames, poses, strict=True)]
         assert all(moved[3:])
         assert [moved[f.index - 1] for f in older] == [move] * len(older)
+
+
+def test_kept_adam_state_carries_over_between_rounds():
+    """With `keep_adam` the second round continues the first round's moments; without it,
+    each round starts a fresh Adam whose step count ends at the round's iterations."""
+    poses = [pose.make_pose(torch.eye(3), torch.tensor([0.05 * i, 0.0, 0.0])) for i in range(4)]
+    for keep in (False, True):
+        frames = [
+            FrameState(i + 1, i / 30, textured_wall_image(T), T.clone(), keyframe=True)
+            for i, T in enumerate(poses)
+        ]
+        m = mapper(pixels=64, iters=3, window_keyframes=2, keep_adam=keep)
+        optimizers = [m._round_optimizer() for _ in range(2)]
+        assert (optimizers[0] is optimizers[1]) == keep
+        m.map(frames[2:], frames[:2])
+        m.map(frames[2:], frames[:2])
+        grid = m.field.grid_parameters()[-1]
+        steps = [float(o.state[grid]["step"]) for o in optimizers if grid in o.state]
+        if keep:
+            assert steps == [6.0, 6.0]
+        else:
+            assert steps == []
