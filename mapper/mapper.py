@@ -120,11 +120,10 @@ class Mapper:
         A kept Adam remembers each parameter's gradient statistics: a voxel whose gradient
         has only been noise moves less, one seen for the first time moves more.
         """
-        if not self.cfg.keep_adam:
-            return adam(self._groups(self.cfg.decoder_lr))
-        if self._map_optimizer is None:
-            self._map_optimizer = adam(self._groups(self.cfg.decoder_lr))
-        return self._map_optimizer
+        optimizer = self._map_optimizer or adam(self._groups(self.cfg.decoder_lr))
+        if self.cfg.keep_adam:
+            self._map_optimizer = optimizer
+        return optimizer
 
     def _init_groups(self, scale: float) -> list[dict]:
         """Grids and decoder both learn while the map is built from nothing (a decoder frozen

@@ -47,8 +47,8 @@ def test_anchored_keyframes_keep_their_poses_while_recent_frames_move():
 
 
 def test_kept_adam_state_carries_over_between_rounds():
-    """With `keep_adam` the second round continues the first round's moments; without it,
-    each round starts a fresh Adam whose step count ends at the round's iterations."""
+    """With `keep_adam` every round steps the same Adam (its step count adds up over two
+    rounds); without it, each round gets a new one and the ones handed out stay unused."""
     poses = [pose.make_pose(torch.eye(3), torch.tensor([0.05 * i, 0.0, 0.0])) for i in range(4)]
     for keep in (False, True):
         frames = [
