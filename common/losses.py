@@ -100,13 +100,14 @@ def warp_patches(
 
     Every pixel of the patch centred on `uv_k` is placed on the plane z = `depth_k` of camera k,
     lifted to the world and projected into each frame l. Differentiable w.r.t. `depth_k`,
-    `T_wc_k` and `T_wc_l`.
+    `T_wc_k` and `T_wc_l`. Patches may come from different frames k (one pose per patch), so
+    that a whole window warps in one call.
 
     Args:
         uv_k: `(M, 2)` patch centres in frame k, pixels.
         depth_k: `(M,)` z-depth of the centres in camera k.
-        T_wc_k: `(4, 4)` pose of frame k.
-        T_wc_l: `(F, 4, 4)` poses of the other frames.
+        T_wc_k: `(4, 4)` pose of frame k, or `(M, 4, 4)`: each patch's own source pose.
+        T_wc_l: `(F, 4, 4)` poses of the frames to warp into.
         camera: intrinsics shared by all frames.
         offsets: `(P, 2)` patch layout, e.g. `patch_offsets(11)`.
 
@@ -115,21 +116,27 @@ def warp_patches(
     """
     check_shape("uv_k", uv_k, (None, 2))
     check_shape("depth_k", depth_k, (uv_k.shape[0],))
-    check_shape("T_wc_k", T_wc_k, (4, 4))
+    if T_wc_k.dim() == 2:
+        check_shape("T_wc_k", T_wc_k, (4, 4))
+        T_wc_k = T_wc_k[None]
+    else:
+        check_shape("T_wc_k", T_wc_k, (uv_k.shape[0], 4, 4))
     check_shape("T_wc_l", T_wc_l, (None, 4, 4))
     check_shape("offsets", offsets, (None, 2))
-    T_lk = pose.compose(pose.invert(T_wc_l), T_wc_k)  # (F, 4, 4)
+    # B below is 1 (one source pose) or M (a pose per patch): every product broadcasts over it.
+    T_lk = pose.compose(pose.invert(T_wc_l)[:, None], T_wc_k)  # (F, B, 4, 4)
     K = uv_k.new_tensor(camera.K)
     # In homogeneous pixels, patch pixel q + o (o = (du, dv, 0)) on the plane z = d of camera k
     # lands at h = d H (q + o) + K t_lk, H = K R_lk K^-1: the centre's image plus d times the
     # offset's. So each (F, M, P) coordinate plane is one fused multiply-add of small factors;
     # separate planes also spare the backward the zero-filled gradients of strided slices.
-    H = K @ T_lk[:, :3, :3] @ uv_k.new_tensor(np.linalg.inv(camera.K))  # (F, 3, 3)
+    H = K @ T_lk[..., :3, :3] @ uv_k.new_tensor(np.linalg.inv(camera.K))  # (F, B, 3, 3)
     q = torch.cat([uv_k, torch.ones_like(uv_k[:, :1])], dim=-1)  # (M, 3)
-    centre = depth_k[:, None] * (q @ H.transpose(-1, -2)) + (T_lk[:, None, :3, 3] @ K.T)
-    step = offsets @ H[:, :, :2].transpose(-1, -2)  # (F, P, 3)
+    centre = depth_k[:, None] * (H @ q[:, :, None])[..., 0] + T_lk[..., :3, 3] @ K.T  # (F, M, 3)
+    du, dv = offsets.unbind(-1)  # (P,)
+    dH = depth_k[:, None, None] * H[..., :2]  # (F, M, 3, 2): the offset's image per unit step
     x, y, z = (
-        torch.addcmul(centre[:, :, None, i], depth_k[:, None], step[:, None, :, i])
+        torch.addcmul(torch.addcmul(centre[..., i, None], dH[..., i, :1], du), dH[..., i, 1:], dv)
         for i in range(3)
     )
     front = z > MIN_Z

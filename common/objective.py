@@ -62,6 +62,15 @@ def pixel_colors(images: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor) ->
     return images[frame, v, u]
 
 
+def patch_colors(
+    images: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor, offsets: torch.Tensor
+) -> torch.Tensor:
+    """Observed colours `(M, P, 3)` of the patches `offsets` `(P, 2)` around integer pixels
+    `uv` `(M, 2)` of frames `frame` `(M,)`, all inside their image."""
+    u, v = (uv[:, None] + offsets).long().unbind(-1)
+    return images[frame[:, None], v, u]
+
+
 def window_objective(
     field: FieldFn,
     images: torch.Tensor,
@@ -94,25 +103,18 @@ def window_objective(
     out = render_pixels(field, camera, uv, poses[frame], render_cfg, generator)
     render_term = losses.render_l1(out.rgb, pixel_colors(images, frame, uv))
 
+    # Every pixel's patch is warped into every window frame in one call, its own frame masked
+    # out: one image lookup for the window instead of one per source frame.
     offsets = losses.patch_offsets(max(cfg.patch_sizes), dtype=uv.dtype, device=uv.device)
-    total = images.new_zeros(())
-    count = torch.zeros((), dtype=torch.int64, device=images.device)
     n_frames = images.shape[0]
-    for k in torch.unique(frame).tolist():
-        sel = frame == k
-        others = [i for i in range(n_frames) if i != k]
-        if not others:
-            continue
-        warp = losses.warp_patches(
-            uv[sel], out.depth[sel], poses[k], poses[others], camera, offsets
-        )
-        ref = losses.sample_images(images[k], uv[sel][:, None] + offsets)
-        warped = losses.sample_images(images[others], warp.uv)
-        visible = losses.visibility_mask(warp, min(cfg.min_views, len(others) - 1))
-        term = losses.warping_loss(ref, warped, warp.valid, visible, cfg.patch_sizes)
-        total = total + term.value * term.count
-        count = count + term.count
-    warp_value = total / count.clamp_min(1)
+    warp = losses.warp_patches(uv, out.depth, poses[frame], poses, camera, offsets)
+    others = frame != torch.arange(n_frames, device=frame.device)[:, None]  # (F, M)
+    warp = losses.WarpResult(warp.uv, warp.valid & others[..., None])
+    ref = patch_colors(images, frame, uv, offsets)
+    warped = losses.sample_images(images, warp.uv)
+    visible = losses.visibility_mask(warp, min(cfg.min_views, n_frames - 2))
+    term = losses.warping_loss(ref, warped, warp.valid, visible, cfg.patch_sizes)
+    warp_value, count = term.value, term.count
 
     loss = cfg.warp_weight * warp_value + cfg.render_weight * render_term.value
     smooth_value = 0.0

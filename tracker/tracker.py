@@ -27,7 +27,7 @@ import torch
 
 from dimslam.common import losses
 from dimslam.common.camera import Camera
-from dimslam.common.objective import LossConfig, WindowLoss
+from dimslam.common.objective import LossConfig, WindowLoss, patch_colors
 from dimslam.common.options import option
 from dimslam.common.render import FieldFn, RenderConfig, render_pixels
 from dimslam.common.window import (
@@ -131,59 +131,35 @@ class Tracker:
         targets = [i for i, m in enumerate(movable) if m]
         offsets = losses.patch_offsets(max(self.loss_cfg.patch_sizes), device=window[0].rgb.device)
         per_frame = max(1, self.cfg.pixels // len(sources))
-        uv = torch.stack(
+        uv = torch.cat(
             [
                 losses.high_gradient_pixels(window[i].rgb, per_frame, self.generator, self.margin)
                 for i in sources
             ]
-        ).float()  # (S, m, 2)
-        T_src = torch.stack([window[i].T_wc for i in sources])  # (S, 4, 4)
+        ).float()  # (S m, 2), source by source
+        source = torch.tensor(sources, device=uv.device).repeat_interleave(per_frame)  # (S m,)
+        poses = torch.stack([f.T_wc for f in window])
+        T_src = poses[source]  # (S m, 4, 4)
         with torch.no_grad():
-            depth = render_pixels(
-                field,
-                self.camera,
-                uv.reshape(-1, 2),
-                T_src.repeat_interleave(per_frame, dim=0),
-                self.render_cfg,
-            ).depth.view(len(sources), per_frame)
-            patches = torch.cat(
-                [
-                    losses.sample_images(window[i].rgb, uv[s][:, None] + offsets)
-                    for s, i in enumerate(sources)
-                ]
-            )  # (S m, P, 3)
-            poses = torch.stack([f.T_wc for f in window])
+            depth = render_pixels(field, self.camera, uv, T_src, self.render_cfg).depth
+            images = torch.stack([f.rgb for f in window])
+            patches = patch_colors(images, source, uv, offsets)  # (S m, P, 3)
             centre = offsets.new_zeros(1, 2)
-            min_views = min(self.loss_cfg.min_views, len(window) - 2)
-            visible = torch.cat(
-                [
-                    losses.visibility_mask(
-                        losses.warp_patches(
-                            uv[s],
-                            depth[s],
-                            T_src[s],
-                            poses[[j != i for j in range(len(window))]],
-                            self.camera,
-                            centre,
-                        ),
-                        min_views,
-                    )
-                    for s, i in enumerate(sources)
-                ]
-            )
-        images = torch.stack([window[i].rgb for i in targets])
+            warp = losses.warp_patches(uv, depth, T_src, poses, self.camera, centre)
+            others = source != torch.arange(len(window), device=uv.device)[:, None]
+            seen = losses.WarpResult(warp.uv, warp.valid & others[..., None])
+            visible = losses.visibility_mask(seen, min(self.loss_cfg.min_views, len(window) - 2))
+        images = images[targets]
         nan = float("nan")
 
         def objective(_: int, poses: torch.Tensor) -> tuple[torch.Tensor, WindowLoss]:
-            warps = [
-                losses.warp_patches(uv[s], depth[s], T_src[s], poses[targets], self.camera, offsets)
-                for s in range(len(sources))
-            ]
-            valid = torch.cat([w.valid for w in warps], dim=1)  # (T, S m, P)
-            warped = losses.sample_images(images, torch.cat([w.uv for w in warps], dim=1))
-            term = losses.warping_loss(patches, warped, valid, visible, self.loss_cfg.patch_sizes)
+            warp = losses.warp_patches(uv, depth, T_src, poses[targets], self.camera, offsets)
+            warped = losses.sample_images(images, warp.uv)
+            term = losses.warping_loss(
+                patches, warped, warp.valid, visible, self.loss_cfg.patch_sizes
+            )
             total = self.loss_cfg.warp_weight * term.value
-            stats = WindowLoss(total, term.value.item(), nan, 0.0, int(term.count), depth.view(-1))
+            stats = WindowLoss(total, term.value.item(), nan, 0.0, int(term.count), depth)
             return total, stats
 
         return objective
