@@ -406,7 +406,10 @@ def high_gradient_pixels(
     sobel = image.new_tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]])
     kernels = torch.stack([sobel, sobel.T])[:, None]  # d/du, d/dv
     grad = F.conv2d(F.pad(grey, (1, 1, 1, 1), mode="replicate"), kernels)[0]
-    magnitude = grad.norm(dim=0)[margin : h - margin, margin : w - margin].reshape(-1)
+    # hypot, not grad.norm(dim=0): torch's reduction over the leading dimension took 22 ms for a
+    # 320x240 image on a 2-core CPU, hypot 0.2 ms (and the tracker calls this for every fixed
+    # frame of every window).
+    magnitude = torch.hypot(grad[0], grad[1])[margin : h - margin, margin : w - margin].reshape(-1)
     n = magnitude.numel()
     keep = min(n, max(count, math.ceil(top_fraction * n)))
     top = torch.topk(magnitude, keep).indices  # strongest first
