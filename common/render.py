@@ -131,12 +131,23 @@ def sample_depths(
                 (R, cfg.n_stratified), 0.5, device=origins.device, dtype=origins.dtype
             )
         t = cfg.near + (cfg.far - cfg.near) * (steps + jitter) / cfg.n_stratified
-        for _ in range(cfg.importance_rounds):
-            points = origins[:, None] + t[..., None] * directions[:, None]
-            occ = field(points.reshape(-1, 3), with_color=False).occupancy.view(R, -1)
+        occ = _occupancy(field, origins, directions, t)
+        for round_ in range(cfg.importance_rounds):
             extra = sample_pdf(t, ray_weights(occ), cfg.n_importance, generator)
-            t, _ = torch.sort(torch.cat([t, extra], dim=-1), dim=-1)
+            t, order = torch.sort(torch.cat([t, extra], dim=-1), dim=-1)
+            if round_ + 1 < cfg.importance_rounds:
+                # Only the new samples are evaluated: the earlier ones keep their occupancy.
+                occ_extra = _occupancy(field, origins, directions, extra)
+                occ = torch.cat([occ, occ_extra], dim=-1).gather(1, order)
     return t
+
+
+def _occupancy(
+    field: FieldFn, origins: torch.Tensor, directions: torch.Tensor, t: torch.Tensor
+) -> torch.Tensor:
+    """Occupancy `(R, S)` at depths `t` `(R, S)` along rays `(R, 3)`."""
+    points = origins[:, None] + t[..., None] * directions[:, None]
+    return field(points.reshape(-1, 3), with_color=False).occupancy.view(t.shape)
 
 
 def render_rays(
