@@ -123,6 +123,21 @@ def test_true_geometry_warps_patches_onto_themselves(views):
     assert ssim[warp.valid.all(-1)].median() > 0.97
 
 
+def test_patches_from_several_source_frames_warp_in_one_call(views):
+    # Half the patches come from frame k, half from frame l[0] at a depth of their own: one
+    # call with a pose per patch gives what one call per source frame gives.
+    n = len(views.uv) // 2
+    depth = views.depth * torch.linspace(0.9, 1.1, len(views.uv))
+    T_src = torch.stack([views.T_k] * n + [views.T_l[0]] * (len(views.uv) - n))
+    both = L.warp_patches(views.uv, depth, T_src, views.T_l, CAM, views.offsets)
+    for rows, T in ((slice(0, n), views.T_k), (slice(n, None), views.T_l[0])):
+        one = L.warp_patches(views.uv[rows], depth[rows], T, views.T_l, CAM, views.offsets)
+        assert torch.allclose(both.uv[:, rows], one.uv, atol=1e-4)
+        assert torch.equal(both.valid[:, rows], one.valid)
+    with pytest.raises(ValueError, match="T_wc_k"):
+        L.warp_patches(views.uv, depth, T_src[:-1], views.T_l, CAM, views.offsets)
+
+
 def test_wrong_depth_or_pose_costs_clearly_more(views):
     true = views.loss().value
     assert views.loss(depth=views.depth * 1.1).value > 3 * true
