@@ -260,7 +260,11 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
     ratio = ratio[gt > 0]
     med = float(np.median(ratio))
     within = float(np.mean(np.abs(ratio / med - 1) < 0.05))
-    return f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%)"
+    p10, p90 = np.percentile(ratio, [10, 90])
+    return (
+        f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%; "
+        f"10th-90th percentile {p10:.2f}-{p90:.2f})"
+    )
 
 
 def cmd_run(args) -> None:
