@@ -45,6 +45,7 @@ class WindowLoss:
         total: 0-dim weighted sum, to call `backward()` on.
         warp, render, smooth: the normalized terms (floats, for logs).
         warp_count: number of valid warping terms (0 means the geometry is unconstrained).
+        depth: `(M,)` rendered depth of the sampled pixels (with gradients, for extra terms).
     """
 
     total: torch.Tensor
@@ -52,6 +53,7 @@ class WindowLoss:
     render: float
     smooth: float
     warp_count: int
+    depth: torch.Tensor
 
 
 def pixel_colors(images: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -126,6 +128,7 @@ def window_objective(
         render=render_term.value.item(),
         smooth=smooth_value,
         warp_count=int(count),
+        depth=out.depth,
     )
 
 

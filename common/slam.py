@@ -72,9 +72,6 @@ PRESETS: dict[str, SlamConfig] = {
                 iters=50,
                 # grid_lr stays at the paper's 1e-3: 2e-3 took room0 from 6.1 to 3.2 cm (3 seeds)
                 # but 7-Scenes from 3.3 to 6.4 cm (docs/results.md, "Grid learning rate").
-                # One Adam across rounds: 50 iterations a round are too few for fresh moments
-                # (docs/results.md, "One Adam state across mapping rounds").
-                keep_adam=True,
                 window_keyframes=6,
                 init_grow_iters=40,
                 init_iters=200,

@@ -152,6 +152,7 @@ def optimize_window(
     map_optimizer: torch.optim.Optimizer | None = None,
     generator: torch.Generator | None = None,
     smooth: bool = False,
+    extra_loss: Callable[[WindowLoss, torch.Tensor], torch.Tensor] | None = None,
     max_loss: float = 10.0,
 ) -> WindowStats:
     """Minimize the window objective; write the optimized poses back into `frames`.
@@ -168,6 +169,8 @@ def optimize_window(
         map_optimizer: the map's optimizer (see `minimize`) or None.
         generator: randomness for ray sampling.
         smooth: include the smoothness term.
+        extra_loss: `(window_loss, frame_of_pixels) -> tensor` added to the total (e.g. the
+            scale gauge during initialization).
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
 
     Raises:
@@ -180,7 +183,10 @@ def optimize_window(
         result = window_objective(
             field_fn, images, poses, camera, frame, uv, loss_cfg, render_cfg, generator, smooth
         )
-        return result.total, result
+        total = result.total
+        if extra_loss is not None:
+            total = total + extra_loss(result, frame)
+        return total, result
 
     return minimize(frames, movable, objective, iterations, pose_lr, map_optimizer, max_loss)
 

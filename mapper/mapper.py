@@ -2,12 +2,9 @@
 
 Paper section 3.3 and appendix. Initialization optimizes the map and the poses of the first
 `init_frames` frames jointly (frame 0 fixed at identity). The scale of a monocular map is free,
-so a gauge pins it (design.md section 5): before initialization the map is fitted to a
-fronto-parallel plane at `gauge_depth` in front of frame 0, which sets the scale the joint
-optimization then keeps. No ground truth enters anywhere. A penalty holding frame 0's median
-depth at `gauge_depth` throughout initialization was tried and dropped: it left the map a few
-percent out of step with the poses it was fitted with, and the mismatch turned into scale
-drift once the penalty let go (room0 4.9-5.1 cm with it, docs/results.md).
+so a gauge pins it (design.md section 5): the map starts as a fronto-parallel plane at
+`gauge_depth` in front of frame 0, and during initialization a penalty keeps frame 0's median
+rendered depth at `gauge_depth`. No ground truth enters anywhere.
 
 A mapping round optimizes grids, decoder and the poses of its window (keyframes overlapping the
 newest frame plus the frames since the last round; frame 0 stays fixed) on random pixels.
@@ -23,7 +20,7 @@ import torch
 from dimslam.common import mesh as meshing
 from dimslam.common.camera import Camera
 from dimslam.common.field import Field, MapConfig
-from dimslam.common.objective import LossConfig
+from dimslam.common.objective import LossConfig, WindowLoss
 from dimslam.common.options import option
 from dimslam.common.render import RenderConfig, render_image, render_pixels
 from dimslam.common.window import (
@@ -71,6 +68,7 @@ class MapperConfig:
     init_lr_scale: float = option(10.0, "Map learning rates are multiplied by this during init.")
     prior_iters: int = option(200, "Iterations fitting the initial plane at the gauge depth.")
     gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
+    gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
     post_iters: int = option(0, "Map-only post-optimization iterations over all keyframes.")
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
@@ -178,6 +176,12 @@ class Mapper:
             "initial plane at depth %.2f fitted (error %.3f)", self.cfg.gauge_depth, prior_error
         )
 
+        def gauge(result: WindowLoss, frame: torch.Tensor) -> torch.Tensor:
+            depth0 = result.depth[frame == 0]
+            if depth0.numel() == 0:
+                return result.total.new_zeros(())
+            return self.cfg.gauge_weight * (depth0.median() / self.cfg.gauge_depth - 1) ** 2
+
         def optimize(window: list[FrameState], iterations: int) -> WindowStats:
             return optimize_window(
                 self.field,
@@ -192,6 +196,7 @@ class Mapper:
                 map_optimizer=adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
                 smooth=True,
+                extra_loss=gauge,
                 max_loss=float("inf"),
             )
 

@@ -159,7 +159,7 @@ class Tracker:
                 patches, warped, warp.valid, visible, self.loss_cfg.patch_sizes
             )
             total = self.loss_cfg.warp_weight * term.value
-            stats = WindowLoss(total, term.value.item(), nan, 0.0, int(term.count))
+            stats = WindowLoss(total, term.value.item(), nan, 0.0, int(term.count), depth)
             return total, stats
 
         return objective
