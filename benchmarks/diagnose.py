@@ -142,8 +142,15 @@ def cmd_map_oracle(args) -> None:
         error = pose_error(s.T_wc, poses[s.index])
         print(
             f"frame {s.index:3d} kf={int(s.keyframe)} guess {guess} -> {error} "
-            f"loss {res.stats.history[0]:.4f} -> {res.stats.loss:.4f} window {res.window}"
+            f"loss {res.stats.history[0]:.4f} -> {res.stats.loss:.4f} window {res.window}",
+            flush=True,
         )
+    stamps = np.array([f.timestamp for f in frames])
+    gt = Trajectory(stamps, torch.stack(poses).double().numpy())
+    est = Trajectory(stamps, torch.stack([s.T_wc for s in states]).double().numpy())
+    for align in ("sim3", "se3"):
+        m = evaluate_trajectory(est, gt, align=align)
+        print(f"tracked on the oracle map: ATE {100 * m.ate_rmse_m:.2f} cm ({align} alignment)")
 
 
 def cmd_single(args) -> None:
