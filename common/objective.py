@@ -35,11 +35,6 @@ class LossConfig:
     patch_sizes: tuple[int, ...] = option((1, 5, 11), "Patch sizes of the warping loss.")
     min_views: int = option(5, "A pixel counts if it lands inside more than this many frames.")
     smooth_blocks: int = option(128, "Rendered 2x2 pixel blocks per iteration for smoothness.")
-    sharp_weight: float = option(
-        0.0,
-        "Weight of the termination-spread term in mapping: (spread / depth)^2 per sampled ray, "
-        "pulling each ray's weights onto one surface (0: off, as the paper).",
-    )
 
 
 @dataclass(frozen=True)
@@ -122,9 +117,6 @@ def window_objective(
     warp_value, count = term.value, term.count
 
     loss = cfg.warp_weight * warp_value + cfg.render_weight * render_term.value
-    if cfg.sharp_weight > 0:
-        relative = out.spread / out.depth.detach().clamp_min(render_cfg.near)
-        loss = loss + cfg.sharp_weight * (relative**2).mean()
     smooth_value = 0.0
     if smooth and cfg.smooth_weight > 0 and cfg.smooth_blocks > 0:
         term = _smoothness(field, images, poses, camera, cfg.smooth_blocks, render_cfg, generator)

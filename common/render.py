@@ -45,14 +45,11 @@ class RenderOutput:
         depth: `(R,)` expected z-depth.
         rgb: `(R, 3)` expected colour.
         opacity: `(R,)` sum of the weights (1 where the ray hits a surface).
-        spread: `(R,)` standard deviation of the termination depth (weights normalized): 0
-            for a sharp surface, large where the occupancy is smeared along the ray.
     """
 
     depth: torch.Tensor
     rgb: torch.Tensor
     opacity: torch.Tensor
-    spread: torch.Tensor
 
 
 def camera_rays(
@@ -181,11 +178,7 @@ def render_rays(
     w = ray_weights(out.occupancy.view(R, S))
     depth = (w * t).sum(dim=-1)
     rgb = (w[..., None] * out.rgb.view(R, S, 3)).sum(dim=1)
-    opacity = w.sum(dim=-1)
-    p = w / opacity.clamp_min(1e-6)[:, None]
-    mean = (p * t).sum(dim=-1, keepdim=True)
-    spread = ((p * (t - mean) ** 2).sum(dim=-1) + 1e-10).sqrt()
-    return RenderOutput(depth=depth, rgb=rgb, opacity=opacity, spread=spread)
+    return RenderOutput(depth=depth, rgb=rgb, opacity=w.sum(dim=-1))
 
 
 def render_pixels(
