@@ -1,6 +1,6 @@
 """Where along the path an estimate's error comes from: local accuracy and local scale.
 
-    python benchmarks/drift.py TRAJ DATASET [--segment 30] [--json FILE]
+    python benchmarks/drift.py TRAJ DATASET [--segment 30] [--frames N] [--json FILE]
 
 TRAJ is a TUM trajectory (a run's `trajectory.txt`), DATASET anything the readers know with
 ground truth. The whole trajectory is aligned once (Sim(3), as `dimslam eval` does); then the
@@ -13,7 +13,9 @@ own. Per segment it prints:
 - *path* and *turn*: ground-truth distance travelled and rotation turned within the segment.
 
 A small local ATE with a large global error and local scales away from 1 says the error is
-scale drift between segments, not tracking noise within them.
+scale drift between segments, not tracking noise within them. `--frames N` keeps only the
+estimate's first N poses (alignment included): what the ATE would be without a bad final
+stretch.
 """
 
 from __future__ import annotations
@@ -29,11 +31,15 @@ import torch
 from dimslam.common import pose
 from dimslam.common.datasets import open_dataset
 from dimslam.common.evaluation import associate, evaluate_trajectory, umeyama
-from dimslam.common.trajectory import read_tum
+from dimslam.common.trajectory import Trajectory, read_tum
 
 
-def segments(est_path: str, dataset: str, length: int) -> tuple[dict, list[dict]]:
+def segments(
+    est_path: str, dataset: str, length: int, frames: int | None = None
+) -> tuple[dict, list[dict]]:
     est = read_tum(est_path)
+    if frames is not None:
+        est = Trajectory(est.timestamps[:frames], est.poses[:frames])
     gt = open_dataset(dataset).ground_truth()
     if gt is None:
         raise SystemExit(f"error: {dataset} has no ground truth")
@@ -66,11 +72,14 @@ def main() -> None:
     p.add_argument("traj", help="estimated trajectory, TUM format")
     p.add_argument("dataset", help="dataset with ground truth")
     p.add_argument("--segment", type=int, default=30, help="matched poses per segment")
+    p.add_argument("--frames", type=int, help="use only the estimate's first N poses")
     p.add_argument("--json", type=Path, help="also write the figures here")
     args = p.parse_args()
     if args.segment < 3:
         p.error("--segment must be at least 3 (a Sim(3) needs 3 points)")
-    whole, rows = segments(args.traj, args.dataset, args.segment)
+    if args.frames is not None and args.frames < 3:
+        p.error("--frames must be at least 3 (a Sim(3) needs 3 points)")
+    whole, rows = segments(args.traj, args.dataset, args.segment, args.frames)
     print(
         f"ATE {100 * whole['ate_rmse_m']:.2f} cm, scale {whole['scale']:.3f}, "
         f"RPE {whole['rpe_trans_per_m']:.3f} m/m, {whole['matched']} poses"
