@@ -44,6 +44,14 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def map_lag_rounds(text: str) -> int:
+    """`--map-lag ROUNDS`: mapping rounds the tracker may run ahead of the map, 0 or more."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
 def add_reader_options(p: argparse.ArgumentParser) -> None:
     """The options every dataset reader honours (see `ReaderOptions`)."""
 
@@ -184,11 +192,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = slam_config(args)
     device = device_for(args.device)
     if args.single_process:
+        if args.map_lag is not None:
+            raise DimslamError(
+                "--map-lag sets how far the service's tracker may run ahead of its mapper; "
+                "--single-process maps every round before the next frame"
+            )
         if args.threads:
             torch.set_num_threads(args.threads)
         run = run_dataset
     else:
-        run = partial(launch.run_service, threads=args.threads)
+        lag = launch.MAP_LAG if args.map_lag is None else args.map_lag
+        run = partial(launch.run_service, threads=args.threads, map_lag=lag)
     summary = run(
         args.dataset,
         args.out,
@@ -368,6 +382,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="track and map in turn in this process (the paper's one-thread variant) instead "
         "of running mapper, tracker and camera as separate processes over zenoh",
+    )
+    p.add_argument(
+        "--map-lag",
+        type=map_lag_rounds,
+        metavar="ROUNDS",
+        help="service only: mapping rounds the tracker may run ahead of the map (default: "
+        f"{launch.MAP_LAG}, tracking overlaps the round in progress; 0: the tracker waits for "
+        "every round, as accurate as --single-process and as slow; docs/results.md measures both)",
     )
     add_slam_options(p)
     p.set_defaults(func=cmd_run)

@@ -1,9 +1,9 @@
 """`dimslam run` through the real service: mapper, tracker, camera and a pose client as processes.
 
 All four run on loopback in a session of their own (free ports, scouting off); the camera
-streams in lockstep so that every frame is tracked, and the tracker runs at most `MAP_LAG`
-mapping rounds ahead of the map, so that every round is mapped (an offline run's choice; live
-use leaves the tracker free). The mapper writes the final poses
+streams in lockstep so that every frame is tracked, and the tracker runs at most `map_lag`
+(default `MAP_LAG`) mapping rounds ahead of the map, so that every round is mapped (an offline
+run's choice; live use leaves the tracker free). The mapper writes the final poses
 (`trajectory.txt`, keyframes refined, other frames re-anchored to their keyframe), the tracker
 the poses as first published (`trajectory_online.txt`), the pose client what a subscriber
 received (`poses_received.txt`). Each process logs to `<role>.log` in the output folder.
@@ -35,7 +35,9 @@ MAP_LAG = 1
 """Mapping rounds the tracker may run ahead of the map (`dimslam-tracker --map-lag`): one,
 so tracking overlaps the round in progress; a tracker faster than its mapper (two CPU
 processes) would otherwise track most frames on a map rounds old, and the mapper, taking its
-pending batches together, ran 26 rounds for 7-Scenes' 500 frames instead of 100."""
+pending batches together, ran 26 rounds for 7-Scenes' 500 frames instead of 100. The round
+it runs ahead costs accuracy: 0 (wait for every round) tracks as well as one process does,
+and as slowly (docs/results.md, "Service vs single process")."""
 
 
 def free_port() -> int:
@@ -56,6 +58,7 @@ def run_service(
     cfg: SlamConfig,
     device: torch.device,
     threads: int | None = None,
+    map_lag: int = MAP_LAG,
     max_frames: int | None = None,
     layout: str | None = None,
     mesh: bool = True,
@@ -87,7 +90,7 @@ def run_service(
         "tracker": [
             "dimslam.tracker.cli",
             "--listen", tracker_ep, "--connect", mapper_ep,
-            "--out", str(out_dir), "--map-lag", str(MAP_LAG), *compute, *settings,
+            "--out", str(out_dir), "--map-lag", str(map_lag), *compute, *settings,
         ],
         "poses": [
             "dimslam.common.clients", "poses", *both,
@@ -102,7 +105,14 @@ def run_service(
     }  # fmt: skip
     (out_dir / "config.json").write_text(
         json.dumps(
-            {"source": source, "device": str(device), "mode": "service", **to_dict(cfg)}, indent=2
+            {
+                "source": source,
+                "device": str(device),
+                "mode": "service",
+                "map_lag": map_lag,
+                **to_dict(cfg),
+            },
+            indent=2,
         )
         + "\n"
     )

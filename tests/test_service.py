@@ -50,6 +50,20 @@ def test_run_through_the_service(sequence, tmp_path):
     # Initialization plus one round per batch (frames 10, 15, ..., 35), none taken together:
     # the tracker stays within one round of the map (launch.MAP_LAG).
     assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
+    assert json.loads((out / "config.json").read_text())["map_lag"] == 1
+
+
+def test_map_lag_0_tracks_every_frame_on_the_newest_map(sequence, tmp_path):
+    out = tmp_path / "run"
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--map-lag", "0"]
+    assert main(["run", str(sequence), "--out", str(out), *args]) == 0
+    assert len(read_tum(out / "poses_received.txt")) == FRAMES
+    assert json.loads((out / "config.json").read_text())["map_lag"] == 0
+    stats = json.loads((out / "tracker_stats.json").read_text())
+    # The tracker waited for each round's snapshot before its next frame: no frame was
+    # tracked while a batch it had sent was still being mapped.
+    assert stats["tracked"] > 0 and stats["frames_mapper_busy"] == 0
+    assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
 
 
 def _start(module: str, *args: str, log) -> subprocess.Popen:

@@ -9,7 +9,7 @@ from functools import partial
 from pathlib import Path
 
 from dimslam.common import logs
-from dimslam.common.cli import run_main
+from dimslam.common.cli import map_lag_rounds, run_main
 from dimslam.common.service import (
     add_compute_options,
     add_slam_options,
@@ -25,13 +25,6 @@ DESCRIPTION = (
 )
 
 
-def _rounds(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dimslam-tracker", description=DESCRIPTION)
     p.add_argument(
@@ -41,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--map-lag",
-        type=_rounds,
+        type=map_lag_rounds,
         metavar="ROUNDS",
         help="bounded staleness, for offline runs where the mapper is slower than the tracker: "
         "before a new frame, wait while more than ROUNDS mapping batches sent to a live mapper "

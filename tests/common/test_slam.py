@@ -61,6 +61,13 @@ def test_bad_override_is_a_one_line_error(sequence, tmp_path, capsys):
     assert "--tracker.iters" in capsys.readouterr().err
 
 
+def test_map_lag_is_refused_in_one_process(sequence, tmp_path, capsys):
+    args = ["run", "--single-process", str(sequence), "--out", str(tmp_path / "x")]
+    assert main([*args, "--map-lag", "0"]) == 2
+    assert "--map-lag" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()  # refused before anything ran
+
+
 def test_too_short_a_sequence_is_refused(sequence, tmp_path, capsys):
     args = [
         "run",
