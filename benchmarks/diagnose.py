@@ -30,15 +30,15 @@ import cv2
 import numpy as np
 import torch
 
-from dimslam.common import losses, pose
-from dimslam.common.datasets import ReaderOptions, open_dataset
-from dimslam.common.evaluation import evaluate_trajectory
-from dimslam.common.objective import window_objective
-from dimslam.common.options import apply_overrides
-from dimslam.common.render import render_image, render_pixels
-from dimslam.common.slam import PRESETS, Slam
-from dimslam.common.trajectory import Trajectory
-from dimslam.common.window import (
+from dimslam.common.config import PRESETS
+from dimslam.common.eval.evaluation import evaluate_trajectory
+from dimslam.common.geometry import pose
+from dimslam.common.io.datasets import ReaderOptions, open_dataset
+from dimslam.common.io.trajectory import Trajectory
+from dimslam.common.map.render import render_image, render_pixels
+from dimslam.common.optim import losses
+from dimslam.common.optim.objective import window_objective
+from dimslam.common.optim.window import (
     FrameState,
     TrackingLost,
     adam,
@@ -46,6 +46,8 @@ from dimslam.common.window import (
     optimize_window,
     random_pixels,
 )
+from dimslam.common.options import apply_overrides
+from dimslam.common.slam import Slam
 
 
 def load(args):
@@ -87,7 +89,7 @@ def states_at(frames, poses) -> list[FrameState]:
 
 
 def depth_error(slam: Slam, camera, T, gt: np.ndarray, scale: float = 1.0) -> str:
-    d, _ = render_image(slam.mapper.field, camera, T, slam.cfg.render)
+    d, _ = render_image(slam.back.mapper.field, camera, T, slam.cfg.render)
     e = np.abs(d.numpy() * scale - gt)
     return f"depth error median {100 * np.median(e):.1f} cm, mean {100 * e.mean():.1f} cm"
 
@@ -103,7 +105,7 @@ def fit_supervised(args):
     depths = gt_depths(Path(args.seq), frames, camera)
     poses = relative_gt(frames)
     slam = Slam(cfg, camera, torch.device("cpu"))
-    field, g = slam.mapper.field, slam.generator
+    field, g = slam.back.mapper.field, slam.generator
     opt = torch.optim.Adam([{"params": list(field.parameters()), "lr": 1e-2}])
     rgb = torch.stack([torch.from_numpy(f.rgb).float() / 255 for f in frames])
     depth = torch.from_numpy(np.stack(depths))
@@ -123,7 +125,7 @@ def fit_supervised(args):
 def cmd_map_oracle(args) -> None:
     """Fit the map by supervision, then track every frame on it as the system would."""
     cfg, camera, frames, poses, slam = fit_supervised(args)
-    field = slam.mapper.field
+    field = slam.back.mapper.field
     states = states_at(frames, poses)
     states[0].keyframe = True
     tracked = states[:2]
@@ -133,11 +135,11 @@ def cmd_map_oracle(args) -> None:
         tracked.append(s)
         kfs = [f for f in tracked if f.keyframe]
         try:
-            res = slam.tracker.track(field, tracked[-cfg.tracker.local_frames :], kfs)
+            res = slam.front.tracker.track(field, tracked[-cfg.tracker.local_frames :], kfs)
         except TrackingLost as e:
             print(f"frame {s.index}: lost ({e})")
             return
-        if slam.tracker.is_keyframe(field, s, kfs[-1]):
+        if slam.front.tracker.is_keyframe(field, s, kfs[-1]):
             s.keyframe = True
         error = pose_error(s.T_wc, poses[s.index])
         print(
@@ -164,7 +166,7 @@ def cmd_single(args) -> None:
     uv = losses.high_gradient_pixels(states[-1].rgb, cfg.tracker.pixels, slam.generator, 5).float()
     frame = torch.full((uv.shape[0],), len(states) - 1)
     stats = optimize_window(
-        slam.mapper.field,
+        slam.back.mapper.field,
         states,
         [False] * (len(states) - 1) + [True],
         camera,
@@ -192,7 +194,7 @@ def cmd_landscape(args) -> None:
             T_k = pose.retract(poses[k], torch.tensor([0, 0, float(dz), 0, 0, 0]))
             with torch.no_grad():
                 r = window_objective(
-                    slam.mapper.field,
+                    slam.back.mapper.field,
                     images,
                     torch.stack([*anchors, T_k]),
                     camera,
@@ -215,22 +217,22 @@ def cmd_mapper(args) -> None:
     scale = cfg.mapper.gauge_depth / float(np.median(depths[0]))
     states = states_at(frames, relative_gt(frames, scale))
     slam = Slam(cfg, camera, torch.device("cpu"))
-    slam.mapper.fit_prior(states[0])
+    slam.back.mapper.fit_prior(states[0])
     gt0 = depths[0] * scale
     print(f"after the plane prior: {depth_error(slam, camera, states[0].T_wc, gt0)} (map units)")
     n = len(states)
     for done in range(0, args.fit_iters, 50):
         stats = optimize_window(
-            slam.mapper.field,
+            slam.back.mapper.field,
             states,
             [False] * n,
             camera,
-            slam.mapper._sampler(n),
+            slam.back.mapper._sampler(n),
             50,
             0.0,
             cfg.loss,
             cfg.render,
-            map_optimizer=adam(slam.mapper._init_groups(cfg.mapper.init_lr_scale)),
+            map_optimizer=adam(slam.back.mapper._init_groups(cfg.mapper.init_lr_scale)),
             generator=slam.generator,
             smooth=True,
             max_loss=float("inf"),
@@ -262,7 +264,7 @@ def cmd_init(args) -> None:
 def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: float) -> str:
     """The map's scale at a frame: rendered over true depth (times the initialization's scale,
     so 1 means the scale the system started with), median and spread over the pixels."""
-    d, _ = render_image(slam.mapper.field, camera, frame.T_wc, slam.cfg.render)
+    d, _ = render_image(slam.back.mapper.field, camera, frame.T_wc, slam.cfg.render)
     ratio = scale * d.numpy() / np.maximum(gt, 1e-6)
     ratio = ratio[gt > 0]
     med = float(np.median(ratio))

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dimslam.common import pose
-from dimslam.common.datasets import open_dataset
-from dimslam.common.evaluation import associate, evaluate_trajectory, umeyama
-from dimslam.common.trajectory import Trajectory, read_tum
+from dimslam.common.eval.evaluation import associate, evaluate_trajectory, umeyama
+from dimslam.common.geometry import pose
+from dimslam.common.io.datasets import open_dataset
+from dimslam.common.io.trajectory import Trajectory, read_tum
 
 
 def segments(

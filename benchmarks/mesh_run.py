@@ -21,13 +21,14 @@ import dimslam.common  # noqa: F401  (OMP_WAIT_POLICY must be set before torch l
 # isort: split
 import torch
 
-from dimslam.common.datasets import ReaderOptions, open_dataset
-from dimslam.common.mesh import write_mesh
-from dimslam.common.messages import MapSnapshot
+from dimslam.common.config import PRESETS
+from dimslam.common.eval.report import evaluate_files, format_metrics
+from dimslam.common.io.datasets import ReaderOptions, open_dataset
+from dimslam.common.io.trajectory import read_tum
+from dimslam.common.map.mesh import write_mesh
+from dimslam.common.net.exchange import load_map
+from dimslam.common.net.messages import MapSnapshot
 from dimslam.common.options import apply_overrides, flat_settings
-from dimslam.common.report import evaluate_files, format_metrics
-from dimslam.common.slam import PRESETS
-from dimslam.common.trajectory import read_tum
 from dimslam.mapper.mapper import Mapper
 
 
@@ -48,7 +49,7 @@ def main() -> None:
         cfg.mapper, cfg.map, cfg.loss, cfg.render, cfg.tracker.overlap,
         cfg.tracker.overlap_pixels, camera, torch.device("cpu"), torch.Generator(),
     )  # fmt: skip
-    mapper.field.load_state_dict({k: torch.from_numpy(v) for k, v in snap.state.items()})
+    load_map(mapper.field, snap)
     poses = torch.from_numpy(read_tum(args.out / "trajectory.txt").poses).float()
     started = time.perf_counter()
     mesh = mapper.extract_mesh(poses, cfg.render.far)

@@ -25,9 +25,9 @@ import dimslam.common  # noqa: F401  (OMP_WAIT_POLICY must be set before torch l
 # isort: split
 import torch
 
-from dimslam.common.launch import run_service
-from dimslam.common.slam import PRESETS
-from dimslam.common.synth import write_sequence
+from dimslam.common.config import PRESETS
+from dimslam.common.io.synth import write_sequence
+from dimslam.common.net.launch import run_service
 
 KEYS = ("median_track_ms_mapper_busy", "median_track_ms_mapper_idle", "fps", "ate_rmse_m")
 

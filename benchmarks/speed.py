@@ -35,12 +35,13 @@ import dimslam.common  # noqa: F401  (OMP_WAIT_POLICY must be set before torch l
 import numpy as np
 import torch
 
-from dimslam.common.camera import Camera
-from dimslam.common.datasets.base import Frame
+from dimslam.common.config import PRESETS, SlamConfig, device_for
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.io.datasets.base import Frame
+from dimslam.common.io.synth import FPS, SynthScene, default_camera
+from dimslam.common.optim.window import FrameState, TrackingLost, constant_velocity
 from dimslam.common.options import apply_overrides
-from dimslam.common.slam import PRESETS, Slam, SlamConfig, device_for
-from dimslam.common.synth import FPS, SynthScene, default_camera
-from dimslam.common.window import FrameState, TrackingLost, constant_velocity
+from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import INIT_START, MapperConfig
 
 log = logging.getLogger("speed")
@@ -100,17 +101,16 @@ def time_steps(
     for rgb in images[: cfg.mapper.init_frames]:
         slam.frames.append(_state(slam, rgb, torch.eye(4, device=device)))
     prior_iters = max(1, cfg.mapper.prior_iters)
-    slam.mapper.fit_prior(slam.frames[0])  # warm-up: first calls pay one-off costs
+    slam.back.mapper.fit_prior(slam.frames[0])  # warm-up: first calls pay one-off costs
     _sync(device)
     start = time.perf_counter()
-    slam.mapper.fit_prior(slam.frames[0])
+    slam.back.mapper.fit_prior(slam.frames[0])
     _sync(device)
     prior_s = time.perf_counter() - start
     start = time.perf_counter()
-    slam.mapper.initialize(slam.frames)  # fits the prior again, then the joint optimization
+    slam.back.mapper.initialize(slam.frames)  # fits the prior again, then the joint optimization
     _sync(device)
     init_s = (time.perf_counter() - start - prior_s) / max(1, cfg.mapper.init_iters)
-    slam.initialized = True
     for f in slam.frames:
         f.keyframe = True
     lost: list[str] = []
@@ -122,7 +122,7 @@ def time_steps(
         start = time.perf_counter()
         try:
             local = slam.frames[-cfg.tracker.local_frames :]
-            result = slam.tracker.track(slam.mapper.field, local, slam.keyframes)
+            result = slam.front.tracker.track(slam.back.mapper.field, local, slam.keyframes)
         except TrackingLost as e:
             lost.append(f"tracking frame {len(slam.frames) - 1}: {e}")
             slam.frames.pop()
@@ -135,7 +135,7 @@ def time_steps(
         _sync(device)
         start = time.perf_counter()
         try:
-            done = slam.mapper.map(slam.frames[-cfg.mapper.every :], slam.keyframes)
+            done = slam.back.mapper.map(slam.frames[-cfg.mapper.every :], slam.keyframes)
         except TrackingLost as e:
             lost.append(f"mapping: {e}")
             continue
@@ -151,7 +151,7 @@ def time_steps(
         "map_ms_per_iter": _median_ms(mapping),
         "map_iters": cfg.mapper.iters,
         "map_window": map_window,
-        "map_mb": slam.mapper.field.memory_bytes() / MB,
+        "map_mb": slam.back.mapper.field.memory_bytes() / MB,
         "lost": lost,
     }
 

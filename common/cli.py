@@ -1,4 +1,4 @@
-"""`dimslam`: the umbrella command (synth, dataset, eval, demo).
+"""`dimslam`: the umbrella command (synth, dataset, eval, demo, run).
 
 Each subcommand is a thin layer over a library function; errors a user can fix
 (`DimslamError`) print one line and exit 2, anything else keeps its traceback.
@@ -9,23 +9,25 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from dimslam.common import launch, logs
-from dimslam.common.datasets import LAYOUTS, ReaderOptions, open_dataset
+from dimslam.common import entry
+from dimslam.common.config import PRESETS, device_for
 from dimslam.common.errors import DimslamError
-from dimslam.common.evaluation import write_metrics
+from dimslam.common.eval.evaluation import write_metrics
+from dimslam.common.eval.report import RunSummary, evaluate_files, format_metrics
+from dimslam.common.io.datasets import LAYOUTS, add_reader_arguments, open_from_args
+from dimslam.common.io.synth import write_sequence
+from dimslam.common.io.trajectory import write_tum
+from dimslam.common.net import launch
+from dimslam.common.net.service import add_slam_options, map_lag_rounds, slam_config
 from dimslam.common.progress import Progress
-from dimslam.common.report import evaluate_files, format_metrics
-from dimslam.common.service import add_slam_options, slam_config
-from dimslam.common.slam import PRESETS, RunSummary, device_for, run_dataset
-from dimslam.common.synth import write_sequence
-from dimslam.common.trajectory import write_tum
+from dimslam.common.slam import run_dataset
 
 log = logging.getLogger("dimslam")
 
@@ -42,63 +44,6 @@ def _size(text: str) -> tuple[int, int]:
     if w < 8 or h < 8:
         raise argparse.ArgumentTypeError(f"image size must be at least 8x8, got {text!r}")
     return w, h
-
-
-def map_lag_rounds(text: str) -> int:
-    """`--map-lag ROUNDS`: mapping rounds the tracker may run ahead of the map, 0 or more."""
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-    return value
-
-
-def add_reader_options(p: argparse.ArgumentParser) -> None:
-    """The options every dataset reader honours (see `ReaderOptions`)."""
-
-    g = p.add_argument_group("dataset reading")
-    g.add_argument(
-        "--layout", choices=sorted(LAYOUTS), help="dataset layout (default: detected from the path)"
-    )
-    g.add_argument("--stride", type=int, default=1, help="use every N-th frame (default: 1)")
-    g.add_argument("--start", type=int, default=0, help="first frame to use (default: 0)")
-    g.add_argument("--end", type=int, default=None, help="frame to stop before (default: the last)")
-    g.add_argument(
-        "--width", type=int, default=None, help="resize frames to this width; intrinsics follow"
-    )
-    g.add_argument(
-        "--calib",
-        type=Path,
-        default=None,
-        help="intrinsics file 'fx fy cx cy [k1 k2 p1 p2 [k3]]' overriding the dataset's own",
-    )
-    g.add_argument(
-        "--fps",
-        type=float,
-        default=ReaderOptions.fps,
-        help="frame rate of sources whose frames carry no timestamp: image folders, videos "
-        f"without them (default: {ReaderOptions.fps:g})",
-    )
-
-
-def reader_options(args: argparse.Namespace) -> ReaderOptions:
-    """The `ReaderOptions` parsed by `add_reader_options`."""
-    return ReaderOptions(
-        stride=args.stride,
-        start=args.start,
-        end=args.end,
-        width=args.width,
-        calib=args.calib,
-        fps=args.fps,
-    )
-
-
-def open_source(args: argparse.Namespace, source: str):
-
-    return open_dataset(source, layout=args.layout, options=reader_options(args))
-
-
-# ---------------------------------------------------------------------------------------------
-# synth
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -128,7 +73,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 def cmd_dataset(args: argparse.Namespace) -> int:
 
-    reader = open_source(args, args.path)
+    reader = open_from_args(args, args.path)
     cam = reader.camera
     print(f"layout      {reader.layout}")
     try:
@@ -266,8 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Dense RGB-only SLAM with neural implicit maps. Subcommands render the "
         "built-in synthetic scene, inspect datasets and evaluate trajectories and meshes.",
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    entry.add_verbosity(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     p = sub.add_parser(
@@ -296,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
         "or video with calib.txt, live camera index.",
     )
     p.add_argument("path", help="dataset folder, video file or camera index")
-    add_reader_options(p)
+    add_reader_arguments(p)
     p.add_argument(
         "--write-gt",
         type=Path,
@@ -396,22 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run_main(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    """Run an entry point, turning user errors into one line on stderr and exit code 2."""
-    try:
-        return func(args)
-    except DimslamError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logs.configure(args.verbose, args.quiet)
-    return run_main(args.func, args)
+    return entry.main(build_parser(), lambda args: args.func(args), argv)
 
 
 if __name__ == "__main__":

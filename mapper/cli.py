@@ -5,17 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from functools import partial
 from pathlib import Path
 
-from dimslam.common import logs
-from dimslam.common.cli import run_main
-from dimslam.common.service import (
-    add_compute_options,
-    add_slam_options,
-    add_transport_options,
-    run_service,
-)
+from dimslam.common.net.service import add_process_options, service_main
 from dimslam.mapper.service import MapperService
 
 DESCRIPTION = (
@@ -40,25 +32,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="exit after the end of the stream (default: keep the map and answer queries)",
     )
-    add_compute_options(p)
-    add_transport_options(p)
-    add_slam_options(p)
+    add_process_options(p)
     return p
 
 
-def serve(args: argparse.Namespace) -> int:
-    def flush(service: MapperService) -> None:
-        if args.out is not None:
-            service.write(args.out, args.mesh)
+def build(args: argparse.Namespace, *rest) -> MapperService:
+    return MapperService(*rest, exit_at_end=args.exit_at_end)
 
-    build = partial(MapperService, exit_at_end=args.exit_at_end)
-    return run_service(args, "mapper", build, flush)
+
+def flush(args: argparse.Namespace, service: MapperService) -> None:
+    if args.out is not None:
+        service.write(args.out, args.mesh)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logs.configure(args.verbose, args.quiet)
-    return run_main(serve, args)
+    return service_main(build_parser(), "mapper", build, flush, argv)
 
 
 if __name__ == "__main__":

@@ -17,13 +17,12 @@ from dataclasses import dataclass
 
 import torch
 
-from dimslam.common import mesh as meshing
-from dimslam.common.camera import Camera
-from dimslam.common.field import Field, MapConfig
-from dimslam.common.objective import LossConfig, WindowLoss
-from dimslam.common.options import option
-from dimslam.common.render import RenderConfig, render_image, render_pixels
-from dimslam.common.window import (
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.map import mesh as meshing
+from dimslam.common.map.field import Field, MapConfig
+from dimslam.common.map.render import RenderConfig, render_image, render_pixels
+from dimslam.common.optim.objective import LossConfig, WindowLoss
+from dimslam.common.optim.window import (
     FrameState,
     WindowStats,
     adam,
@@ -32,6 +31,7 @@ from dimslam.common.window import (
     overlapping_keyframes,
     random_pixels,
 )
+from dimslam.common.options import option
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +282,7 @@ class Mapper:
         return stats
 
     def extract_mesh(self, poses: torch.Tensor, max_depth: float, progress=None):
-        """The map's surface, culled to the estimated frustums (see `common/mesh.py`).
+        """The map's surface, culled to the estimated frustums (see `common/map/mesh.py`).
 
         The learned occupancy of an RGB-only map stays below 0.5 (docs/status.md: rays end in
         several samples of moderate occupancy), so the surface is the 0.5 level of the

@@ -1,7 +1,7 @@
 """The mapping process's loop: batches in, map snapshots and refined poses out, queries answered.
 
-The steps are the single-process ones (`Mapper.initialize`, `Mapper.map`,
-`Mapper.post_optimize`, `Mapper.extract_mesh`); this module adds the exchange:
+The steps are the single-process ones (`mapper/backend.py`: initialize, map rounds, re-anchor
+the final trajectory, post-optimize, mesh); this module adds the exchange:
 
 - Batch 0 holds the first frames: the mapper initializes on them and publishes snapshot 1.
 - Every later batch brings the frames since the previous one, with their tracked poses and
@@ -30,24 +30,31 @@ import numpy as np
 import torch
 import zenoh
 
-from dimslam.common import pose
-from dimslam.common.camera import Camera
-from dimslam.common.mesh import EmptyMeshError
-from dimslam.common.messages import (
+from dimslam.common.config import SlamConfig, map_digest
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.io.trajectory import Trajectory, format_tum, write_tum
+from dimslam.common.map.mesh import EmptyMeshError
+from dimslam.common.net.exchange import from_batch, load_map, pose_array, to_batch, to_snapshot
+from dimslam.common.net.messages import (
     MAX_BATCH_FRAMES,
     EndOfStream,
     MappingBatch,
-    MappingFrame,
     MapSnapshot,
     MessageError,
     PoseMessage,
     message_type,
 )
-from dimslam.common.slam import SlamConfig, map_digest, release_images
-from dimslam.common.trajectory import Trajectory, format_tum, write_tum
-from dimslam.common.transport import BATCH_QUEUE, Inbox, Keys, Presence, Rejects, Stop, publisher
-from dimslam.common.window import FrameState
-from dimslam.mapper.mapper import Mapper
+from dimslam.common.net.transport import (
+    BATCH_QUEUE,
+    Inbox,
+    Keys,
+    Presence,
+    Rejects,
+    Stop,
+    publisher,
+)
+from dimslam.common.optim.window import FrameState
+from dimslam.mapper.backend import BackEnd
 
 log = logging.getLogger(__name__)
 
@@ -75,18 +82,13 @@ class MapperService:
         self.digest = map_digest(cfg)
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         torch.manual_seed(cfg.seed)  # the grids' initialization, as in one process
-        self.mapper: Mapper | None = None
+        self.back: BackEnd | None = None  # once the first batch gives the camera
         self.camera: Camera | None = None
-        self.frames: list[FrameState] = []
-        # Non-keyframe seq -> (anchor keyframe, pose relative to it), for the final trajectory.
-        self.anchors: dict[int, tuple[FrameState, torch.Tensor]] = {}
         self.version = 0
-        self.rounds = 0
         self.ended = False
         self.snapshot_bytes: bytes | None = None
         self.seed: MapSnapshot | None = None
         self.rejects = Rejects()
-        self.round_seconds: list[float] = []
         self.batches_in = Inbox(BATCH_QUEUE, "mapping batches")
         self.mesh_queries: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         stop.watch(self.batches_in)
@@ -101,6 +103,14 @@ class MapperService:
             session.declare_queryable(keys.query("mesh"), self.mesh_queries.put),
         ]
         self.presence = Presence(session, keys, "mapper", self._peer_changed)
+
+    @property
+    def frames(self) -> list[FrameState]:
+        return self.back.frames if self.back is not None else []
+
+    @property
+    def rounds(self) -> int:
+        return self.back.rounds if self.back is not None else 0
 
     def _peer_changed(self, role: str, alive: bool) -> None:
         if role == "tracker" and not alive:
@@ -121,17 +131,8 @@ class MapperService:
             if self.camera is None or not keyframes:
                 query.reply_err(b"no keyframes yet")
                 return
-            items = tuple(
-                MappingFrame(
-                    f.index,
-                    f.timestamp,
-                    (f.rgb * 255.0).round().byte().cpu().numpy(),
-                    f.T_wc.detach().cpu().double().numpy(),
-                    True,
-                )
-                for f in keyframes
-            )
-            query.reply(query.key_expr, MappingBatch(self.rounds, items, self.camera).to_bytes())
+            batch = to_batch(keyframes, self.rounds, self.camera, keyframes=True)
+            query.reply(query.key_expr, batch.to_bytes())
 
     def _answer_trajectory(self, query: zenoh.Query) -> None:
         with query:
@@ -170,10 +171,11 @@ class MapperService:
         if self.stop:
             self._keep_pending()
         self._answer_meshes()
+        seconds = self.back.round_seconds if self.back is not None else []
         log.info(
             "%d rounds (median %.1f s), map version %d, %d keyframes, %d rejected messages",
             self.rounds,
-            float(np.median(self.round_seconds)) if self.round_seconds else 0.0,
+            float(np.median(seconds)) if seconds else 0.0,
             self.version,
             len(self.keyframes),
             self.rejects.count,
@@ -222,153 +224,96 @@ class MapperService:
         for batch in batches:
             if batch.round == 0:
                 self._reset(batch.camera)
-            elif self.mapper is None and self.seed is not None:
+            elif self.back is None and self.seed is not None:
                 self._reset(batch.camera)
                 self._take_seed()
-            elif self.mapper is None:
+            elif self.back is None:
                 self.rejects("mapping", MessageError(f"batch {batch.round} before initialization"))
                 continue
             elif batch.camera != self.camera:
                 self.rejects("mapping", MessageError(f"batch {batch.round}: another camera"))
                 continue
-            for f in batch.frames:
-                rgb = torch.from_numpy(f.rgb).to(self.device).float() / 255.0
-                T = torch.from_numpy(f.T_wc).float().to(self.device)
-                self.frames.append(FrameState(f.seq, f.timestamp, rgb, T, f.keyframe))
-        return self.mapper is not None and bool(self.frames)
+            assert self.back is not None
+            self.back.add(from_batch(batch, self.device))
+        return self.back is not None and bool(self.frames)
 
     def _step(self, batches: list[MappingBatch]) -> None:
         """One round on the frames just received: initialization first, then mapping."""
-        assert self.mapper is not None
-        started = time.perf_counter()
-        if self.version == 0:
-            result = self.mapper.initialize(self.frames)
-            log.info("initialized on %d frames (loss %.4f)", len(self.frames), result.stats.loss)
-            window = self.frames
-        else:
-            recent = self.frames[-self.cfg.mapper.every :]
-            self.mapper.map(recent, self.keyframes)
-            window = recent
-        self.rounds += 1
-        self.round_seconds.append(time.perf_counter() - started)
-        self._anchor(window)
-        release_images(self.frames, self.cfg)
-        self._publish(batches[-1].round, window)
+        assert self.back is not None
+        result = self.back.step()
+        by_index = {f.index: f for f in self.frames}
+        self._publish(batches[-1].round, [by_index[i] for i in result.window])
 
     def _seed(self, snap: MapSnapshot) -> None:
         """A tracker's map, sent because this mapper had none: kept for its next batch."""
         if snap.config != self.digest:
             self.rejects("mapping", MessageError("a seed map with other settings"))
-        elif self.mapper is None:
+        elif self.back is None:
             self.seed = snap
         else:
             log.info("a tracker offered map version %d; this mapper keeps its own", snap.version)
 
     def _take_seed(self) -> None:
-        assert self.mapper is not None and self.seed is not None
-        state = {k: torch.from_numpy(v) for k, v in self.seed.state.items()}
-        self.mapper.field.load_state_dict(state)
+        assert self.back is not None and self.seed is not None
+        load_map(self.back.field, self.seed)
+        self.back.initialized = True
         self.version = self.seed.version
         log.info("continuing the tracker's map version %d", self.version)
         self.seed = None
 
     def _reset(self, camera: Camera) -> None:
-        if self.mapper is not None:
+        if self.back is not None:
             log.info("a new stream starts: the previous map is dropped")
         self.camera = camera
-        self.mapper = Mapper(
-            self.cfg.mapper,
-            self.cfg.map,
-            self.cfg.loss,
-            self.cfg.render,
-            self.cfg.tracker.overlap,
-            self.cfg.tracker.overlap_pixels,
-            camera,
-            self.device,
-            self.generator,
-        )
-        self.frames = []
-        self.anchors = {}
+        self.back = BackEnd(self.cfg, camera, self.device, self.generator)
         self.version = 0
 
-    def _anchor(self, frames: list[FrameState]) -> None:
-        """Record each non-keyframe's pose relative to the keyframe before it."""
-        keyframes = self.keyframes
-        for f in frames:
-            if f.keyframe:
-                self.anchors.pop(f.index, None)
-                continue
-            before = [kf for kf in keyframes if kf.index <= f.index]
-            if before:
-                kf = before[-1]
-                self.anchors[f.index] = (kf, pose.compose(pose.invert(kf.T_wc), f.T_wc))
-
     def _publish(self, round_: int, window: list[FrameState]) -> None:
-        assert self.mapper is not None
+        assert self.back is not None
         self.version += 1
-        refined = {f.index: f for f in [*self.keyframes, *window]}
-        snap = MapSnapshot(
-            self.version,
-            round_,
-            self.digest,
-            {k: v.detach().cpu().numpy() for k, v in self.mapper.field.state_dict().items()},
-            {s: f.T_wc.detach().cpu().double().numpy() for s, f in refined.items()},
-            tuple(kf.index for kf in self.keyframes),
+        keyframes = self.keyframes
+        refined = {f.index: f for f in [*keyframes, *window]}
+        snap = to_snapshot(
+            self.version, round_, self.digest, self.back.field, refined.values(), keyframes
         )
         self.snapshot_bytes = snap.to_bytes()
         self.map_pub.put(self.snapshot_bytes)
-        for kf in self.keyframes:
-            T = kf.T_wc.detach().cpu().double().numpy()
-            msg = PoseMessage(kf.index, kf.timestamp, T, True, self.version)
+        for kf in keyframes:
+            msg = PoseMessage(kf.index, kf.timestamp, pose_array(kf.T_wc), True, self.version)
             self.keyframe_pub.put(msg.to_bytes())
 
     def _finish(self) -> None:
-        if self.mapper is None:
+        if self.back is None:
             log.warning("end of stream before any map was built")
             return
         if self.cfg.mapper.post_iters > 0:
-            self.mapper.post_optimize(self.keyframes)
+            self.back.finish()
             self._publish(self.rounds, [])
         log.info("end of stream: map version %d, %d frames", self.version, len(self.frames))
 
     # -- outputs ----------------------------------------------------------------------------
 
-    def trajectory(self) -> Trajectory:
-        """Final poses: keyframes as refined, other frames re-anchored to their keyframe."""
-        poses, stamps = [], []
-        for f in self.frames if self.version > 0 else []:
-            T = f.T_wc
-            if not f.keyframe and f.index in self.anchors:
-                kf, rel = self.anchors[f.index]
-                T = pose.normalize(pose.compose(kf.T_wc, rel))
-            poses.append(T.detach().cpu().double().numpy())
-            stamps.append(f.timestamp)
-        if not poses:
+    def trajectory(self, keyframes_only: bool = False) -> Trajectory:
+        """Final poses (of every frame, or of the keyframes): keyframes as refined, other
+        frames re-anchored to their keyframe."""
+        if self.back is None:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.array(stamps), np.stack(poses))
+        return self.back.trajectory(keyframes_only)
 
     def mesh_ply(self) -> bytes:
         """The current mesh as PLY bytes; raises EmptyMeshError without a surface."""
-        if self.mapper is None or self.version == 0:
+        if self.back is None:
             raise EmptyMeshError("no map yet")
-        poses = torch.stack([f.T_wc for f in self.frames])
-        mesh = self.mapper.extract_mesh(poses, self.cfg.render.far)
-        return mesh.export(file_type="ply", encoding="binary")
+        return self.back.extract_mesh().export(file_type="ply", encoding="binary")
 
     def write(self, out: Path, mesh: bool) -> None:
         """Flush the outputs: final trajectory, keyframes, map checkpoint and the mesh if asked."""
         out.mkdir(parents=True, exist_ok=True)
-        traj = self.trajectory()
-        write_tum(out / "trajectory.txt", traj, header="dimslam final poses")
-        kf = [i for i, f in enumerate(self.frames) if f.keyframe]
-        write_tum(
-            out / "keyframes.txt",
-            Trajectory(traj.timestamps[kf], traj.poses[kf]) if len(traj) else traj,
-            header="keyframes",
-        )
+        write_tum(out / "trajectory.txt", self.trajectory(), header="dimslam final poses")
+        write_tum(out / "keyframes.txt", self.trajectory(keyframes_only=True), header="keyframes")
         if self.snapshot_bytes is not None:
             (out / "map.msgpack").write_bytes(self.snapshot_bytes)
-        if mesh and self.mapper is not None and self.version > 0:
+        if mesh and self.back is not None and self.version > 0:
             try:
                 (out / "mesh.ply").write_bytes(self.mesh_ply())
             except EmptyMeshError as e:

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 from dimslam.common.cli import main
-from dimslam.common.evaluation import evaluate_trajectory
-from dimslam.common.launch import free_port
-from dimslam.common.messages import PoseMessage, message_type
-from dimslam.common.trajectory import Trajectory, read_tum
-from dimslam.common.transport import Inbox, Keys, Presence, TransportConfig, open_session
+from dimslam.common.eval.evaluation import evaluate_trajectory
+from dimslam.common.io.trajectory import Trajectory, read_tum
+from dimslam.common.net.launch import loopback_endpoints
+from dimslam.common.net.messages import PoseMessage, message_type
+from dimslam.common.net.transport import Inbox, Keys, Presence, TransportConfig, open_session
 
 FRAMES = 36
 
@@ -73,8 +73,7 @@ def _start(module: str, *args: str, log) -> subprocess.Popen:
 
 
 def test_tracker_keeps_publishing_when_the_mapper_dies(sequence, tmp_path):
-    tracker_ep = f"tcp/127.0.0.1:{free_port()}"
-    mapper_ep = f"tcp/127.0.0.1:{free_port()}"
+    tracker_ep, mapper_ep = loopback_endpoints(2)
     session = f"kill{os.getpid()}"
     common = ["--session", session, "--preset", "tiny", "--threads", "1"]
     logs = {r: open(tmp_path / f"{r}.log", "w") for r in ("mapper", "tracker", "camera")}  # noqa: SIM115
@@ -100,8 +99,9 @@ def test_tracker_keeps_publishing_when_the_mapper_dies(sequence, tmp_path):
         try:
             assert presence.wait_for("tracker", 60) and presence.wait_for("mapper", 60)
             procs["camera"] = _start(
-                "dimslam.common.clients", "camera", str(sequence), "--lockstep", "--ahead", "12",
-                "--rate", "0", "--width", "80", "--connect", tracker_ep, "--session", session,
+                "dimslam.common.net.clients", "camera", str(sequence), "--lockstep",
+                "--ahead", "12", "--rate", "0", "--width", "80", "--connect", tracker_ep,
+                "--session", session,
                 log=logs["camera"],
             )  # fmt: skip
             seen: set[int] = set()
@@ -138,8 +138,7 @@ class Service:
 
     def __init__(self, tmp_path, name: str) -> None:
         self.tmp = tmp_path
-        self.tracker_ep = f"tcp/127.0.0.1:{free_port()}"
-        self.mapper_ep = f"tcp/127.0.0.1:{free_port()}"
+        self.tracker_ep, self.mapper_ep = loopback_endpoints(2)
         self.session = f"{name}{os.getpid()}"
         self.procs: list[subprocess.Popen] = []
         self.logs: list = []
@@ -153,7 +152,14 @@ class Service:
             argv = ["dimslam.tracker.cli", "--listen", self.tracker_ep, "--connect", self.mapper_ep]
             argv += [*common, "--preset", "tiny", "--threads", "1"]
         else:
-            argv = ["dimslam.common.clients", "camera", *extra[:1], "--lockstep", "--ahead", "12"]
+            argv = [
+                "dimslam.common.net.clients",
+                "camera",
+                *extra[:1],
+                "--lockstep",
+                "--ahead",
+                "12",
+            ]
             argv += ["--rate", "0", "--width", "80", "--connect", self.tracker_ep, *common]
             extra = extra[1:]
         log = open(self.tmp / f"{role}{len(self.procs)}.log", "w")  # noqa: SIM115

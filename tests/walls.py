@@ -2,7 +2,7 @@
 
 import torch
 
-from dimslam.common.camera import Camera
+from dimslam.common.geometry.camera import Camera
 
 CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
 

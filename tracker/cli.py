@@ -5,17 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from functools import partial
 from pathlib import Path
 
-from dimslam.common import logs
-from dimslam.common.cli import map_lag_rounds, run_main
-from dimslam.common.service import (
-    add_compute_options,
-    add_slam_options,
-    add_transport_options,
-    run_service,
-)
+from dimslam.common.net.service import add_process_options, map_lag_rounds, service_main
 from dimslam.tracker.service import TrackerService
 
 DESCRIPTION = (
@@ -42,25 +34,21 @@ def build_parser() -> argparse.ArgumentParser:
         "0: wait for every round). Default: never wait, as a live camera needs. A mapper that "
         "is gone is never waited for.",
     )
-    add_compute_options(p)
-    add_transport_options(p)
-    add_slam_options(p)
+    add_process_options(p)
     return p
 
 
-def serve(args: argparse.Namespace) -> int:
-    def flush(service: TrackerService) -> None:
-        if args.out is not None:
-            service.write(args.out)
+def build(args: argparse.Namespace, *rest) -> TrackerService:
+    return TrackerService(*rest, map_lag=args.map_lag)
 
-    build = partial(TrackerService, map_lag=args.map_lag)
-    return run_service(args, "tracker", build, flush)
+
+def flush(args: argparse.Namespace, service: TrackerService) -> None:
+    if args.out is not None:
+        service.write(args.out)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logs.configure(args.verbose, args.quiet)
-    return run_main(serve, args)
+    return service_main(build_parser(), "tracker", build, flush, argv)
 
 
 if __name__ == "__main__":

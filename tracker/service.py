@@ -1,7 +1,7 @@
 """The tracking process's loop: frames in, poses out, mapping batches to the mapper.
 
-The steps are the single-process ones (`Tracker.track`, `Tracker.is_keyframe`,
-`window.constant_velocity`); what this module adds is the exchange:
+The steps are the single-process ones (`tracker/frontend.py`: collect, track, decide
+keyframes, hand batches over); what this module adds is the exchange:
 
 - Until the map exists, frames are collected; the first `init_frames` go to the mapper as
   batch 0, and the tracker waits for snapshot 1 (frames keep queueing meanwhile).
@@ -34,26 +34,41 @@ import numpy as np
 import torch
 import zenoh
 
-from dimslam.common import pose
-from dimslam.common.camera import Camera
-from dimslam.common.field import Field
-from dimslam.common.messages import (
+from dimslam.common.config import SlamConfig, map_digest
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.io.trajectory import Trajectory, write_tum
+from dimslam.common.map.field import Field
+from dimslam.common.net.exchange import (
+    from_batch,
+    load_map,
+    pose_array,
+    pose_tensor,
+    snapshot_poses,
+    to_batch,
+    to_snapshot,
+)
+from dimslam.common.net.messages import (
     MAX_BATCH_FRAMES,
     EndOfStream,
     FrameMessage,
     MappingBatch,
-    MappingFrame,
     MapSnapshot,
     MessageError,
     PoseMessage,
     message_type,
 )
+from dimslam.common.net.transport import (
+    FRAME_QUEUE,
+    Inbox,
+    Keys,
+    Presence,
+    Rejects,
+    Stop,
+    publisher,
+)
+from dimslam.common.optim.window import FrameState, TrackingLost
 from dimslam.common.progress import Progress
-from dimslam.common.slam import SlamConfig, map_digest, release_images
-from dimslam.common.trajectory import Trajectory, write_tum
-from dimslam.common.transport import FRAME_QUEUE, Inbox, Keys, Presence, Rejects, Stop, publisher
-from dimslam.common.window import FrameState, TrackingLost, constant_velocity
-from dimslam.tracker.tracker import Tracker
+from dimslam.tracker.frontend import FrontEnd
 
 log = logging.getLogger(__name__)
 
@@ -109,10 +124,8 @@ class TrackerService:
         self.field = Field(cfg.map, device=device).requires_grad_(False)
         self.camera: Camera | None = None
         self.source_camera: Camera | None = None
-        self.tracker: Tracker | None = None
-        self.frames: list[FrameState] = []
+        self.front: FrontEnd | None = None  # once the first frame gives the camera
         self.online: dict[int, tuple[float, np.ndarray]] = {}
-        self.pending: list[FrameState] = []
         self.outbox: list[bytes] = []
         self.map_version = 0
         self.map_round = -1
@@ -120,7 +133,6 @@ class TrackerService:
         self.init_sent = False
         self.offset = 0  # internal frame index = camera seq + offset (see `fetch_map`)
         self.handover: tuple[MapSnapshot, MappingBatch] | None = None
-        self.next_guess: torch.Tensor | None = None
         self.mapper_appeared = threading.Event()
         self.stats = TrackerStats()
         self.rejects = Rejects()
@@ -137,6 +149,10 @@ class TrackerService:
         self.mapping_pub = publisher(session, keys.mapping, lossless=True)
         self.presence = Presence(session, keys, "tracker", self._peer_changed)
         self.session = session
+
+    @property
+    def frames(self) -> list[FrameState]:
+        return self.front.frames if self.front is not None else []
 
     # -- liveliness -------------------------------------------------------------------------
 
@@ -178,20 +194,17 @@ class TrackerService:
 
     def _adopt(self) -> None:
         """Continue the fetched map: its keyframes become this tracker's."""
-        assert self.handover is not None and self.camera is not None
+        assert self.handover is not None and self.front is not None
         snap, batch = self.handover
         self.handover = None
         if batch.camera != self.camera:
             log.warning("the running map was made with another camera: starting a new one")
             return
-        self.field.load_state_dict({k: torch.from_numpy(v) for k, v in snap.state.items()})
-        for f in batch.frames:
-            rgb = torch.from_numpy(f.rgb).to(self.device).float() / 255.0
-            T = torch.from_numpy(f.T_wc).float().to(self.device)
-            self.frames.append(FrameState(f.seq, f.timestamp, rgb, T, keyframe=True))
+        load_map(self.field, snap)
+        self.front.frames.extend(from_batch(batch, self.device))
         newest = max(snap.poses, default=0)
         if newest in snap.poses:  # the last tracked pose is the best guess for the next frame
-            self.next_guess = torch.from_numpy(snap.poses[newest]).float().to(self.device)
+            self.front.next_guess = pose_tensor(snap.poses[newest], self.device)
         self.offset = max([newest, *(f.index for f in self.frames)]) + 1
         self.map_version = snap.version
         self.map_round = snap.round
@@ -208,15 +221,11 @@ class TrackerService:
         keyframes = keyframes[-MAX_BATCH_FRAMES:]
         if not keyframes:
             return
-        snap = MapSnapshot(
-            self.map_version,
-            self.map_round,
-            self.digest,
-            {k: v.detach().cpu().numpy() for k, v in self.field.state_dict().items()},
-            {f.index: f.T_wc.detach().cpu().double().numpy() for f in keyframes},
-            tuple(f.index for f in keyframes),
+        snap = to_snapshot(
+            self.map_version, self.map_round, self.digest, self.field, keyframes, keyframes
         )
-        self.outbox[:0] = [snap.to_bytes(), self._batch_bytes(keyframes, self.round)]
+        batch = to_batch(keyframes, self.round, self.camera)
+        self.outbox[:0] = [snap.to_bytes(), batch.to_bytes()]
         self.round += 1
         log.info("the new mapper has no map: sending map version %d", self.map_version)
 
@@ -289,9 +298,7 @@ class TrackerService:
             if self.cfg.width and self.cfg.width != cam.width:
                 cam = cam.resized(self.cfg.width)
             self.camera = cam
-            self.tracker = Tracker(
-                self.cfg.tracker, self.cfg.loss, self.cfg.render, cam, self.generator
-            )
+            self.front = FrontEnd(self.cfg, cam, self.generator)
             log.info("camera %dx%d, tracking at %dx%d", *msg.camera.size, *cam.size)
         elif msg.camera != self.source_camera:
             raise MessageError(f"frame {msg.seq}: camera {msg.camera} differs from the stream's")
@@ -302,44 +309,20 @@ class TrackerService:
         return torch.from_numpy(rgb).to(self.device).float() / 255.0
 
     def _process(self, seq: int, timestamp: float, rgb: torch.Tensor) -> None:
+        assert self.front is not None
         if not self.initialized:
-            self.frames.append(FrameState(seq, timestamp, rgb, torch.eye(4, device=self.device)))
-            if len(self.frames) >= self.cfg.mapper.init_frames:
-                self._send_batch(self.frames)
+            if self.front.collect(seq, timestamp, rgb):
+                self._send_batch(self.front.take_batch())
                 self.init_sent = True
             return
-        assert self.tracker is not None
-        last = self.frames[-1]
-        before = self.frames[-2] if len(self.frames) > 1 else None
-        if self.next_guess is not None:
-            guess, self.next_guess = self.next_guess, None
-        elif before is not None and before.index == last.index - 1:
-            guess = constant_velocity(last.T_wc, before.T_wc)
-        else:  # no velocity across a gap (skipped live frames, a continued map)
-            guess = last.T_wc.clone()
-        if not torch.isfinite(guess).all():
-            raise TrackingLost(f"frame {seq}: the motion model gives a non-finite pose")
-        state = FrameState(seq, timestamp, rgb, guess)
-        self.frames.append(state)
-        local = self.frames[-self.cfg.tracker.local_frames :]
-        keyframes = [f for f in self.frames if f.keyframe]
         started = time.perf_counter()
-        try:
-            self.tracker.track(self.field, local, keyframes)
-        except TrackingLost:
-            self.frames.pop()
-            raise
+        state = self.front.track(self.field, seq, timestamp, rgb)
         self.stats.tracked += 1
         self.stats.track_seconds.append(time.perf_counter() - started)
         self.stats.mapper_busy.append(self._mapper_busy())
-        if self.tracker.is_keyframe(self.field, state, keyframes[-1]):
-            state.keyframe = True
         self._publish_pose(state)
-        self.pending.append(state)
-        if seq % self.cfg.mapper.every == 0 or len(self.pending) >= self.cfg.mapper.every:
-            self._send_batch(self.pending)
-            self.pending = []
-        release_images(self.frames, self.cfg)
+        if self.front.batch_due():
+            self._send_batch(self.front.take_batch())
 
     def _unmapped(self) -> int:
         """Batches sent to a live mapper that no snapshot covers yet (0 without a mapper)."""
@@ -356,29 +339,15 @@ class TrackerService:
         return self._unmapped() > 0
 
     def _publish_pose(self, state: FrameState) -> None:
-        T = state.T_wc.detach().cpu().double().numpy()
+        T = pose_array(state.T_wc)
         self.online.setdefault(state.index, (state.timestamp, T))
         seq = state.index - self.offset  # the camera's own numbering
         msg = PoseMessage(seq, state.timestamp, T, state.keyframe, self.map_version)
         self.pose_pub.put(msg.to_bytes())
 
-    def _batch_bytes(self, frames: list[FrameState], round_: int) -> bytes:
-        assert self.camera is not None
-        items = tuple(
-            MappingFrame(
-                f.index,
-                f.timestamp,
-                (f.rgb * 255.0).round().byte().cpu().numpy(),
-                f.T_wc.detach().cpu().double().numpy(),
-                f.keyframe,
-            )
-            for f in frames
-            if f.rgb is not None
-        )
-        return MappingBatch(round_, items, self.camera).to_bytes()
-
     def _send_batch(self, frames: list[FrameState]) -> None:
-        self.outbox.append(self._batch_bytes(frames, self.round))
+        assert self.camera is not None
+        self.outbox.append(to_batch(frames, self.round, self.camera).to_bytes())
         self.round += 1
         self._flush_outbox()
 
@@ -408,10 +377,10 @@ class TrackerService:
             return
         if snap.version <= self.map_version:
             return
-        state = {k: torch.from_numpy(v) for k, v in snap.state.items()}
-        self.field.load_state_dict(state)
+        load_map(self.field, snap)
         first = not self.initialized
-        self._apply_poses(snap)
+        if self.front is not None:
+            self.front.apply_poses(snapshot_poses(snap, self.device), snap.keyframes)
         self.map_version = snap.version
         self.map_round = snap.round
         self.stats.snapshots += 1
@@ -421,34 +390,15 @@ class TrackerService:
                 if f.index >= self.offset:
                     self._publish_pose(f)
 
-    def _apply_poses(self, snap: MapSnapshot) -> None:
-        by_seq = {f.index: f for f in self.frames}
-        known = [s for s in snap.poses if s in by_seq]
-        if not known:
-            return
-        newest = max(known)
-        old = by_seq[newest].T_wc
-        new = torch.from_numpy(snap.poses[newest]).float().to(self.device)
-        correction = pose.compose(new, pose.invert(old))
-        for s in known:
-            by_seq[s].T_wc = torch.from_numpy(snap.poses[s]).float().to(self.device)
-        for f in self.frames:
-            if f.index > newest:
-                f.T_wc = pose.normalize(pose.compose(correction, f.T_wc))
-        for s in snap.keyframes:
-            if s in by_seq:
-                by_seq[s].keyframe = True
-
     # -- end --------------------------------------------------------------------------------
 
     def _end_of_stream(self) -> None:
         """Flush the last batch, tell the mapper and the pose subscribers the stream ended."""
-        if self.initialized and self.pending:
-            self._send_batch(self.pending)
-            self.pending = []
-        elif not self.init_sent and len(self.frames) >= 3:
+        if self.front is not None and self.initialized and self.front.pending:
+            self._send_batch(self.front.take_batch())
+        elif self.front is not None and not self.init_sent and self.front.collect_rest():
             log.info("stream shorter than %d frames: initializing on all", len(self.frames))
-            self._send_batch(self.frames)
+            self._send_batch(self.front.take_batch())
             self.init_sent = True
         if self.init_sent and not self.initialized and not self.stop:
             log.info("waiting for the mapper's initialization to publish the first poses")

@@ -25,18 +25,18 @@ from dataclasses import dataclass
 
 import torch
 
-from dimslam.common import losses
-from dimslam.common.camera import Camera
-from dimslam.common.objective import LossConfig, WindowLoss, patch_colors
-from dimslam.common.options import option
-from dimslam.common.render import FieldFn, RenderConfig, render_pixels
-from dimslam.common.window import (
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.map.render import FieldFn, RenderConfig, render_pixels
+from dimslam.common.optim import losses
+from dimslam.common.optim.objective import LossConfig, WindowLoss, patch_colors
+from dimslam.common.optim.window import (
     FrameState,
     WindowStats,
     minimize,
     overlapping_keyframes,
     project_into,
 )
+from dimslam.common.options import option
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dimslam.common.cli import main
-from dimslam.common.trajectory import Trajectory, read_tum, write_tum
+from dimslam.common.io.trajectory import Trajectory, read_tum, write_tum
 
 SCRIPTS = ["dimslam", "dimslam-tracker", "dimslam-mapper", "dimslam-camera", "dimslam-poses"]
 

@@ -9,9 +9,9 @@ import json
 import pytest
 
 from dimslam.common.cli import main
+from dimslam.common.config import PRESETS
+from dimslam.common.io.trajectory import read_tum
 from dimslam.common.options import apply_overrides
-from dimslam.common.slam import PRESETS
-from dimslam.common.trajectory import read_tum
 
 
 @pytest.fixture(scope="module")

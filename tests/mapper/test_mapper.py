@@ -3,11 +3,11 @@
 import torch
 from walls import CAM, textured_wall_image
 
-from dimslam.common import pose
-from dimslam.common.field import MapConfig
-from dimslam.common.objective import LossConfig
-from dimslam.common.render import RenderConfig
-from dimslam.common.window import FrameState
+from dimslam.common.geometry import pose
+from dimslam.common.map.field import MapConfig
+from dimslam.common.map.render import RenderConfig
+from dimslam.common.optim.objective import LossConfig
+from dimslam.common.optim.window import FrameState
 from dimslam.mapper.mapper import Mapper, MapperConfig
 
 SMALL_MAP = MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0))

@@ -3,11 +3,11 @@
 import torch
 from walls import CAM, textured_wall_image
 
-from dimslam.common import pose
-from dimslam.common.field import FieldOutput
-from dimslam.common.objective import LossConfig
-from dimslam.common.render import RenderConfig
-from dimslam.common.window import FrameState, constant_velocity
+from dimslam.common.geometry import pose
+from dimslam.common.map.field import FieldOutput
+from dimslam.common.map.render import RenderConfig
+from dimslam.common.optim.objective import LossConfig
+from dimslam.common.optim.window import FrameState, constant_velocity
 from dimslam.tracker.tracker import Tracker, TrackerConfig
 
 

@@ -1,0 +1,289 @@
+"""Mesh extraction from the implicit map (design.md section 5, "Mesh").
+
+Marching cubes (scikit-image) at the occupancy level 0.5 on a regular grid over the observed part
+of the scene bound, faces culled to the estimated camera frustums, vertex colours from the
+decoder, binary PLY via trimesh.
+
+The map enters as two callables, so that any field (the learned map, an analytic test scene) can
+be meshed:
+
+- `occupancy_fn(points (N, 3) float32) -> (N,)` occupancy probability in [0, 1] (already a
+  sigmoid; 0 outside the bound),
+- `color_fn(points (N, 3) float32) -> (N, 3)` RGB in [0, 1].
+
+Both receive CPU tensors in map coordinates, `chunk` points at a time, under `torch.no_grad()`;
+a callable whose map lives on a GPU moves them there itself (and may return GPU tensors).
+
+An extraction that finds no surface (the occupancy never crosses the level in the observed
+region, or no face lies in a frustum) raises `EmptyMeshError`, a `DimslamError`: a broken map
+ends a run with that message rather than with an empty file or a crash inside scikit-image.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from scipy import ndimage
+from skimage import measure
+
+from dimslam.common.errors import DimslamError
+from dimslam.common.geometry import pose
+from dimslam.common.geometry.camera import Camera, frustum_mask
+from dimslam.common.geometry.shapes import check_shape
+
+log = logging.getLogger(__name__)
+
+FieldFn = Callable[[torch.Tensor], torch.Tensor]
+
+MAX_GRID_CELLS = 512**3
+"""Largest marching-cubes grid: its float32 volume alone takes ~0.5 GB."""
+
+
+class EmptyMeshError(DimslamError):
+    """The map has no surface where the cameras looked."""
+
+
+def fused_occupancy(
+    depths: torch.Tensor, T_wc: torch.Tensor, camera: Camera, truncation: float
+) -> FieldFn:
+    """An occupancy built from depth maps: 0.5 on the fused surface, 0 where nothing was seen.
+
+    Each view says a point is free if it lies in front of the view's depth at its pixel and
+    occupied just behind it (signed distance `depth - z`, truncated); the mean signed distance
+    over the views that see the point (not beyond `truncation` behind their surface) becomes
+    `sigmoid(-sdf / (truncation / 4))`, so the 0.5 level is the fused surface (TSDF fusion with
+    equal weights). A point no view sees within `truncation` of its surface or in front of it
+    is unknown (NaN: mesh with `unknown_nan=True`). Used to mesh a map whose learned occupancy
+    forms no 0.5 surface.
+
+    Args:
+        depths: `(V, H, W)` z-depth maps (non-positive or non-finite: no depth).
+        T_wc: `(V, 4, 4)` their camera-to-world poses.
+        camera: intrinsics of the depth maps.
+        truncation: signed distances are clamped to +-truncation, map units.
+    """
+    check_shape("depths", depths, (None, camera.height, camera.width))
+    check_shape("T_wc", T_wc, (depths.shape[0], 4, 4))
+    T_cw = pose.invert(T_wc.double())
+    maps = depths.float()[:, None]  # (V, 1, H, W) for grid_sample
+    scale = torch.tensor([2.0 / camera.width, 2.0 / camera.height], dtype=torch.float32)
+
+    def occupancy(p: torch.Tensor) -> torch.Tensor:
+        total = torch.zeros(p.shape[0], dtype=torch.float32)
+        count = torch.zeros(p.shape[0], dtype=torch.float32)
+        for v in range(T_cw.shape[0]):
+            uv, z = camera.project(pose.transform_points(T_cw[v], p.double()).float())
+            grid = (uv + 0.5) * scale - 1  # pixel centres at integer coordinates
+            d = torch.nn.functional.grid_sample(
+                maps[v : v + 1], grid.view(1, 1, -1, 2), mode="nearest", align_corners=False
+            ).view(-1)
+            inside = (grid.abs() <= 1).all(-1) & (z > 0) & torch.isfinite(d) & (d > 0)
+            sdf = (d - z).clamp(-truncation, truncation)
+            seen = inside & (d - z > -truncation)
+            total += torch.where(seen, sdf, 0.0)
+            count += seen.float()
+        sdf = total / count.clamp(min=1)
+        # Never seen within the truncation band (outside every view, or deep behind every
+        # surface that sees it): unknown, so no surface forms between what was seen and what
+        # was not (neither a false inner shell nor walls at the edges of the views).
+        return torch.where(count > 0, torch.sigmoid(-sdf / (truncation / 4)), float("nan"))
+
+    return occupancy
+
+
+class GridTooLarge(DimslamError):
+    """The observed region needs more than `MAX_GRID_CELLS` cells at the asked voxel size."""
+
+    def __init__(self, suggest: float, cells: int, voxel: float) -> None:
+        super().__init__(
+            f"mesh grid of {cells:,} cells at voxel {voxel} exceeds {MAX_GRID_CELLS:,}: "
+            f"use a voxel of at least {suggest:.3g}"
+        )
+        self.suggest = suggest
+
+
+def extract_mesh(
+    occupancy_fn: FieldFn,
+    color_fn: FieldFn,
+    bound: torch.Tensor | np.ndarray,
+    voxel: float,
+    T_wc: torch.Tensor | np.ndarray,
+    camera: Camera,
+    max_depth: float,
+    chunk: int = 65536,
+    level: float = 0.5,
+    progress: Callable[[int, int], None] | None = None,
+    unknown_nan: bool = False,
+) -> trimesh.Trimesh:
+    """Mesh the `level` set of the occupancy where the cameras looked.
+
+    The grid is aligned with `bound[0]` at spacing `voxel` and covers only the part of the bound
+    inside the axis-aligned box around all camera frustums (apex to `max_depth`). Faces are kept
+    if all three vertices lie in some camera's frustum: `0 < z <= max_depth`, inside the image
+    (no occlusion test). Face normals point out of the occupied region, towards free space.
+
+    Args:
+        occupancy_fn: points `(N, 3)` float32 -> occupancy `(N,)` in [0, 1] (see module doc).
+        color_fn: points `(N, 3)` float32 -> RGB `(N, 3)` in [0, 1].
+        bound: `(2, 3)` scene bound `[min; max]`, map units.
+        voxel: grid spacing, map units.
+        T_wc: `(N, 4, 4)` estimated camera-to-world poses.
+        camera: intrinsics of every pose (image size included).
+        max_depth: far limit of the frustums (z-depth), map units.
+        chunk: points per call of `occupancy_fn` / `color_fn`.
+        level: the surface's occupancy value.
+        progress: called as `progress(points_done, points_total)` after each occupancy chunk.
+        unknown_nan: the occupancy is NaN where the field knows nothing (see
+            `fused_occupancy`); no face is made in a cube that touches such a point.
+
+    Returns:
+        The mesh in map coordinates, float64 vertices, uint8 RGBA vertex colours.
+
+    Raises:
+        EmptyMeshError: no surface in the observed region (empty or saturated map).
+        DimslamError: bad arguments, a grid over `MAX_GRID_CELLS`, cameras that see nothing of
+            the bound, or non-finite field values.
+    """
+    bound = torch.as_tensor(bound, dtype=torch.float64).cpu()
+    T_wc = torch.as_tensor(T_wc, dtype=torch.float64).cpu()
+    check_shape("bound", bound, (2, 3))
+    check_shape("T_wc", T_wc, (None, 4, 4))
+    if not (math.isfinite(voxel) and voxel > 0 and math.isfinite(max_depth) and max_depth > 0):
+        raise DimslamError(f"voxel and max_depth must be positive, got {voxel}, {max_depth}")
+    if chunk < 1 or not 0 < level < 1:
+        raise DimslamError(f"need chunk >= 1 and 0 < level < 1, got {chunk}, {level}")
+    if len(T_wc) == 0 or not torch.isfinite(T_wc).all() or not torch.isfinite(bound).all():
+        raise DimslamError("meshing needs at least one pose; poses and bound must be finite")
+    start = time.perf_counter()
+    origin, shape = _observed_grid(bound, voxel, T_wc, camera, max_depth)
+
+    volume = np.empty(math.prod(shape), np.float32)
+    with torch.no_grad():
+        for first in range(0, len(volume), chunk):
+            idx = torch.arange(first, min(first + chunk, len(volume)))
+            i, jk = idx // (shape[1] * shape[2]), idx % (shape[1] * shape[2])
+            ijk = torch.stack([i, jk // shape[2], jk % shape[2]], 1)
+            points = (origin + ijk * voxel).float()
+            volume[first : first + len(idx)] = _call(
+                occupancy_fn, points, (len(idx),), "occupancy", allow_nan=unknown_nan
+            )
+            if progress is not None:
+                progress(first + len(idx), len(volume))
+    known = np.isfinite(volume)
+    volume[~known] = 0.0
+    lo, hi = (float(volume[known].min()), float(volume[known].max())) if known.any() else (0, 0)
+    if not lo < level < hi:
+        raise EmptyMeshError(
+            f"no surface to mesh: occupancy over the observed region ranges over [{lo:.3g}, "
+            f"{hi:.3g}] and never crosses {level}; the map is empty or saturated there"
+        )
+    # Occupancy grows into matter: skimage's "ascent" then winds the triangles counter-clockwise
+    # seen from free space (trimesh's convention), so face normals point out of the occupied
+    # region; its default "descent" gives the reverse (test_mesh checks the orientation).
+    verts, faces, _, _ = measure.marching_cubes(
+        volume.reshape(shape),
+        level,
+        gradient_direction="ascent",
+        allow_degenerate=False,
+        mask=None if known.all() else _cubes_known(known.reshape(shape)),
+    )
+    # marching_cubes works in index units; the grid's origin and spacing make them map units.
+    verts = origin.numpy() + verts.astype(np.float64) * voxel
+
+    level_faces = len(faces)
+    faces = faces[frustum_mask(verts, T_wc, camera, max_depth)[faces].all(axis=1)]
+    if len(faces) == 0:
+        raise EmptyMeshError(
+            f"no surface to mesh: none of the {level_faces} faces of the level set lies in a "
+            f"camera frustum within max_depth {max_depth}"
+        )
+    used = np.zeros(len(verts), bool)
+    used[faces] = True
+    faces = (np.cumsum(used) - 1)[faces]
+    verts = verts[used]
+
+    with torch.no_grad():
+        rgb = np.concatenate(
+            [
+                _call(color_fn, torch.from_numpy(verts[i : i + chunk]).float(), (None, 3), "colour")
+                for i in range(0, len(verts), chunk)
+            ]
+        )
+    rgba = np.full((len(verts), 4), 255, np.uint8)
+    rgba[:, :3] = np.round(np.clip(rgb, 0, 1) * 255)
+    mesh = trimesh.Trimesh(verts, faces, vertex_colors=rgba, process=False)
+    log.info(
+        "mesh: %d vertices, %d faces from a %dx%dx%d grid at voxel %g in %.1f s",
+        len(verts),
+        len(faces),
+        *shape,
+        voxel,
+        time.perf_counter() - start,
+    )
+    return mesh
+
+
+def write_mesh(mesh: trimesh.Trimesh, path: str | Path) -> None:
+    """Write `mesh` as binary PLY with its uint8 vertex colours; creates the parent folder.
+
+    Raises:
+        DimslamError: naming the file if it cannot be written.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(mesh.export(file_type="ply", encoding="binary"))
+    except OSError as e:
+        raise DimslamError(f"{path}: cannot write mesh ({e.strerror})") from None
+
+
+def _observed_grid(
+    bound: torch.Tensor, voxel: float, T_wc: torch.Tensor, camera: Camera, max_depth: float
+) -> tuple[torch.Tensor, tuple[int, int, int]]:
+    """Origin `(3,)` float64 and sample counts of the grid over the bound part cameras can see."""
+    w, h = camera.width - 0.5, camera.height - 0.5
+    uv = torch.tensor([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h]], dtype=torch.float64)
+    # A frustum is the hull of its apex and its four far corners.
+    far = camera.unproject(uv, torch.full((4,), max_depth, dtype=torch.float64))
+    p_c = torch.cat([torch.zeros(1, 3, dtype=torch.float64), far])
+    p_w = pose.transform_points(T_wc, p_c).reshape(-1, 3)
+    # Indices on the lattice `bound[0] + i * voxel`, so that the grid does not move with the
+    # cameras; the last index stays inside the bound, where the field is defined.
+    last = torch.floor((bound[1] - bound[0]) / voxel + 1e-9)
+    i0 = torch.floor((p_w.min(0).values - bound[0]) / voxel).clamp(0, None)
+    i1 = torch.minimum(torch.ceil((p_w.max(0).values - bound[0]) / voxel), last)
+    counts = (i1 - i0 + 1).long()
+    if (counts < 2).any():
+        raise DimslamError(
+            f"the cameras see no part of the bound {bound.tolist()} at least one voxel "
+            f"({voxel}) thick: are the poses in the map frame, and the voxel small enough?"
+        )
+    cells = math.prod(int(c) - 1 for c in counts)
+    if cells > MAX_GRID_CELLS:
+        raise GridTooLarge(voxel * (cells / MAX_GRID_CELLS) ** (1 / 3) * 1.01, cells, voxel)
+    return bound[0] + i0 * voxel, tuple(int(c) for c in counts)
+
+
+def _cubes_known(known: np.ndarray) -> np.ndarray:
+    """Grid points all of whose 26 neighbours are known: every cube that touches the point has
+    only known corners, whichever corner of its cubes marching cubes' mask refers to."""
+    return ndimage.binary_erosion(known, structure=np.ones((3, 3, 3), bool), border_value=0)
+
+
+def _call(
+    fn: FieldFn, points: torch.Tensor, shape: tuple, name: str, allow_nan: bool = False
+) -> np.ndarray:
+    """`fn(points)` as a float32 numpy array of `shape`, checked to be finite (or NaN)."""
+    out = fn(points)
+    check_shape(f"{name} output", out, shape)
+    out = out.detach().float().cpu().numpy()
+    if not (np.isfinite(out) | (allow_nan & np.isnan(out))).all():
+        raise DimslamError(f"the map's {name} is not finite (NaN/inf): has the map diverged?")
+    return out

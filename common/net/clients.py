@@ -1,0 +1,513 @@
+"""`dimslam-camera` (frame publisher) and `dimslam-poses` (pose subscriber).
+
+Both are plain peers of the service (transport.py): `with open_session(...)` so nothing hangs at
+exit, SIGINT/SIGTERM set one stop event, user errors print one line and exit 2 (entry.run_main).
+
+The camera sends each frame, in order, once three gates let it through:
+1. lockstep (optional): fewer than `--ahead` frames beyond the last pose the tracker published;
+2. pacing: the recorded rate (timestamp differences), `--rate`, or none; after a stall
+   (lockstep, slow decoding) the schedule restarts instead of bursting to catch up;
+3. the publisher: BLOCK for datasets and videos, so every frame arrives; DROP for a live
+   camera, whose tracker only wants the newest frame.
+Dataset and video frames wait until a tracker is alive and subscribed, so none is sent into the
+void; `EndOfStream` follows the last frame, or the frames sent so far on a stop signal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import zenoh
+
+from dimslam.common import entry
+from dimslam.common.errors import DimslamError
+from dimslam.common.io.datasets import Reader, add_reader_arguments, open_from_args
+from dimslam.common.io.datasets.video import CameraReader
+from dimslam.common.io.trajectory import Trajectory, tum_lines, write_tum
+from dimslam.common.net.messages import (
+    EndOfStream,
+    FrameMessage,
+    MessageError,
+    PoseMessage,
+    message_type,
+)
+from dimslam.common.net.service import add_transport_options, transport_config
+from dimslam.common.net.transport import (
+    Inbox,
+    Keys,
+    Presence,
+    Rejects,
+    Stop,
+    open_session,
+    publisher,
+)
+from dimslam.common.progress import Progress
+
+# Named, not __name__: under `python -m` (how `dimslam run` starts it) that is "__main__".
+log = logging.getLogger("dimslam.common.net.clients")
+
+TICK_S = 0.25
+"""Longest a wait lasts before the stop event is checked again (how fast a signal is noticed)."""
+STALL_WARN_S = 10.0
+"""A lockstep camera that waited this long without any pose says why it may be stuck."""
+POSE_QUEUE = 4096
+"""Poses the poses client holds before dropping the oldest; printing outpaces any tracker."""
+DEFAULT_AHEAD = 32
+
+CAMERA_DESCRIPTION = (
+    "Publish frames from a dataset folder, a video file or a live camera index to the dimslam "
+    "tracker, at the recorded rate or in lockstep with the tracker; intrinsics travel with the "
+    "stream."
+)
+POSES_DESCRIPTION = (
+    "Subscribe to the dimslam pose topic and print the camera trajectory (TUM lines, or JSON "
+    "lines), optionally writing it to a TUM file."
+)
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
+    return value
+
+
+def _rate(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive frame rate, got {text}")
+    return value
+
+
+def _log_peer(role: str, alive: bool) -> None:
+    if role in ("tracker", "mapper"):
+        log.info("%s %s", role, "is up" if alive else "went away")
+
+
+# ---------------------------------------------------------------------------------------------
+# dimslam-camera
+
+
+def _camera_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="dataset folder, video file or live camera index")
+    add_reader_arguments(p)
+    g = p.add_argument_group("streaming")
+    g.add_argument(
+        "--rate",
+        type=_rate,
+        default=None,
+        metavar="FPS",
+        help="frames per second; 0: as fast as allowed (default: the recorded rate; a live "
+        "camera's own rate)",
+    )
+    g.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="never run more than --ahead frames beyond the tracker's published poses",
+    )
+    g.add_argument(
+        "--ahead",
+        type=_positive_int,
+        default=DEFAULT_AHEAD,
+        metavar="K",
+        help=f"with --lockstep, frames sent beyond the last pose (default: {DEFAULT_AHEAD}); "
+        "must exceed the tracker's initialization frames (13 for the paper and cpu presets), "
+        "since no pose is published before the map is initialized",
+    )
+    g.add_argument(
+        "--max-frames",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="stop after this many frames",
+    )
+    g.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="send at once instead of waiting for a subscribed tracker (datasets and videos)",
+    )
+    g.add_argument(
+        "--wait-timeout",
+        type=_seconds,
+        default=60.0,
+        metavar="S",
+        help="give up (exit 2) if no tracker is subscribed after S seconds (default: 60)",
+    )
+
+
+class _PoseMark:
+    """The highest frame seq the tracker has published a pose for, to hold a lockstep camera."""
+
+    def __init__(self, topic: str) -> None:
+        self.topic = topic
+        self.highest = -1
+        self.ended = False
+        self.ended_early = False  # the tracker ended while frames were held back for it
+        self.rejects = Rejects()
+        self._cond = threading.Condition()
+
+    def callback(self, sample: zenoh.Sample) -> None:
+        # A pose is ~200 bytes: decoding it on zenoh's thread costs less than queueing it.
+        payload = sample.payload.to_bytes()
+        try:
+            kind = message_type(payload)
+            seq = PoseMessage.from_bytes(payload).seq if kind == PoseMessage.TYPE else None
+        except MessageError as e:
+            self.rejects(self.topic, e)
+            return
+        with self._cond:
+            self.ended = self.ended or kind == EndOfStream.TYPE
+            if seq is not None:
+                self.highest = max(self.highest, seq)
+            self._cond.notify_all()
+
+    def wait_until(self, seq: int, ahead: int, stop: Stop) -> bool:
+        """Wait until frame `seq` is fewer than `ahead` frames beyond the last pose.
+
+        Returns:
+            False if the stop event was set or the tracker ended its stream first.
+        """
+        warn_at = time.monotonic() + STALL_WARN_S
+        with self._cond:
+            while seq - (self.highest + 1) >= ahead:
+                self.ended_early = self.ended
+                if stop or self.ended:
+                    return False
+                if self.highest < 0 and warn_at < time.monotonic():
+                    warn_at = math.inf
+                    log.warning(
+                        "no pose yet after %d frames: --ahead must exceed the tracker's "
+                        "initialization frames, or the tracker is still starting",
+                        seq,
+                    )
+                self._cond.wait(TICK_S)
+            return True
+
+
+class _Pacer:
+    """When each frame is due: the recorded rate (`rate` None), `rate` fps, or at once (0)."""
+
+    def __init__(self, rate: float | None) -> None:
+        self.rate = rate
+        self._due: float | None = None
+        self._last_timestamp: float | None = None
+
+    def delay(self, timestamp: float) -> float:
+        """Seconds to wait before sending the frame taken at `timestamp` (source seconds)."""
+        if self.rate is None:
+            last = self._last_timestamp
+            interval = 0.0 if last is None else max(timestamp - last, 0.0)
+        else:
+            interval = 1.0 / self.rate if self.rate > 0 else 0.0
+        self._last_timestamp = timestamp
+        now = time.monotonic()
+        # A frame is due one interval after the previous one was due, or now if that has passed.
+        self._due = now if self._due is None else max(self._due + interval, now)
+        return self._due - now
+
+
+def _wait_for_tracker(
+    pub: zenoh.Publisher, presence: Presence, changed: threading.Event, stop: Stop, timeout: float
+) -> bool:
+    """Wait until a tracker is alive and subscribed to the frames; False on timeout or stop."""
+    deadline = time.monotonic() + timeout
+    # Cleared before each check, so a change during the check wakes the next wait.
+    changed.clear()
+    while not (presence.alive("tracker") and pub.matching_status.matching):
+        remaining = deadline - time.monotonic()
+        if stop or remaining <= 0:
+            return False
+        changed.wait(min(remaining, TICK_S))
+        changed.clear()
+    return True
+
+
+def _stream(
+    reader: Reader,
+    live: bool,
+    pub: zenoh.Publisher,
+    args: argparse.Namespace,
+    stop: Stop,
+    mark: _PoseMark,
+) -> int:
+    """Send the source's frames until it ends, `--max-frames`, or a stop; returns how many."""
+    # A live camera paces itself; waiting on its wall-clock stamps would only add latency.
+    pacer = _Pacer(args.rate if args.rate is not None else 0.0 if live else None)
+    camera = reader.camera
+    try:
+        total = len(reader)
+    except TypeError:  # an unbounded live stream
+        total = None
+    if args.max_frames is not None:
+        total = args.max_frames if total is None else min(total, args.max_frames)
+    bar = Progress(total, "sent")
+    sent = 0
+    for frame in reader:
+        if stop or (args.lockstep and not mark.wait_until(sent, args.ahead, stop)):
+            break
+        if stop.event.wait(pacer.delay(frame.timestamp)):
+            break
+        pub.put(FrameMessage(sent, frame.timestamp, frame.rgb, camera, live=live).to_bytes())
+        sent += 1
+        bar.update(sent, tracked=mark.highest + 1)
+        if sent == args.max_frames:
+            break
+    bar.close(tracked=mark.highest + 1)
+    return sent
+
+
+def run_camera(args: argparse.Namespace) -> int:
+    """Stream the source; 0 at its end or on a stop signal, 1 if the tracker left first."""
+    cfg = transport_config(args)
+    keys = Keys(cfg.session)
+    stop = Stop()
+    changed = threading.Event()
+    tracker_lost = threading.Event()
+
+    def on_peer(role: str, alive: bool) -> None:
+        _log_peer(role, alive)
+        changed.set()
+        if role == "tracker" and not alive and watch_tracker.is_set():
+            tracker_lost.set()
+            stop.set("the tracker went away")
+
+    watch_tracker = threading.Event()  # set once a tracker was waited for
+    with (
+        stop.on_signals(),
+        open_from_args(args, args.source) as reader,
+        open_session(cfg, "camera") as session,
+    ):
+        live = reader.layout == CameraReader.layout
+        pub = publisher(session, keys.frames, lossless=not live)
+        presence = Presence(session, keys, "camera", on_change=on_peer)
+        matching = pub.declare_matching_listener(lambda _status: changed.set())
+        mark = _PoseMark(keys.poses)
+        poses = session.declare_subscriber(keys.poses, mark.callback)
+        if not (live or args.no_wait):
+            log.info("waiting for a tracker in session %r", cfg.session)
+            if _wait_for_tracker(pub, presence, changed, stop, args.wait_timeout):
+                watch_tracker.set()
+            elif not stop:
+                raise DimslamError(
+                    f"no tracker subscribed in session {cfg.session!r} after "
+                    f"{args.wait_timeout:g} s: start dimslam-tracker with the same --session "
+                    "and endpoints, or pass --no-wait"
+                )
+        sent = 0 if stop else _stream(reader, live, pub, args, stop, mark)
+        # A tracker that leaves after the last frame has simply finished.
+        watch_tracker.clear()
+        end = EndOfStream(sent).to_bytes()
+        if live:
+            # Live frames may be dropped, the end may not: BLOCK, at the frames' own priority
+            # so that it cannot overtake the last frame.
+            session.put(
+                keys.frames,
+                end,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=pub.priority,
+                express=True,
+            )
+        else:
+            pub.put(end)
+        log.info("sent %d frames, then the end of stream (%d unreadable)", sent, reader.skipped)
+        matching.undeclare()
+        poses.undeclare()
+        presence.close()
+    if tracker_lost.is_set():
+        log.error("the tracker went away after %d frames", sent)
+        return 1
+    if mark.ended_early:
+        log.error("the tracker ended its stream after pose %d; %d frames sent", mark.highest, sent)
+        return 1
+    return 0
+
+
+def camera_main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="dimslam-camera", description=CAMERA_DESCRIPTION)
+    _camera_options(parser)
+    add_transport_options(parser)
+    return entry.main(parser, run_camera, argv)
+
+
+# ---------------------------------------------------------------------------------------------
+# dimslam-poses
+
+
+def _poses_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="FILE",
+        help="also write the trajectory as a TUM file on exit: one line per frame, sorted by "
+        "time, with the frame's pose from the newest map (the last received of that map)",
+    )
+    p.add_argument("--json", action="store_true", help="print JSON lines instead of TUM lines")
+    p.add_argument(
+        "--keyframes",
+        action="store_true",
+        help="also print the mapper's refined keyframe poses (they replace the tracked ones)",
+    )
+    p.add_argument(
+        "--count",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="exit after N poses from the tracker",
+    )
+    p.add_argument(
+        "--timeout", type=_seconds, default=None, metavar="S", help="exit 1 if no pose for S s"
+    )
+
+
+def _decode(payload: bytes) -> PoseMessage | EndOfStream:
+    """A pose or the end of the stream; `MessageError` for anything else."""
+    if message_type(payload) == EndOfStream.TYPE:
+        return EndOfStream.from_bytes(payload)
+    return PoseMessage.from_bytes(payload)
+
+
+def _format(msg: PoseMessage, as_json: bool, refined: bool) -> str:
+    if as_json:
+        return json.dumps(
+            {
+                "seq": msg.seq,
+                "timestamp": msg.timestamp,
+                "T_wc": msg.T_wc.tolist(),
+                "keyframe": msg.keyframe,
+                "map_version": msg.map_version,
+                "stamp_ns": msg.stamp_ns,
+                "refined": refined,
+            }
+        )
+    return tum_lines(Trajectory.from_lists([msg.timestamp], [msg.T_wc]))[0]
+
+
+def _emit(line: str, stop: Stop) -> None:
+    try:
+        print(line, flush=True)
+    except BrokenPipeError:
+        # Whoever read our output is gone (`| head`): stop as on a signal, and point stdout at
+        # /dev/null so that the interpreter's final flush does not fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        stop.set("output closed")
+
+
+def _receive(
+    args: argparse.Namespace,
+    keys: Keys,
+    inbox: Inbox,
+    refined: Inbox,
+    stop: Stop,
+    latest: dict[int, PoseMessage],
+) -> int:
+    """Print poses until the end of stream, `--count`, a stop (0) or `--timeout` (1)."""
+    rejects = Rejects()
+    tracked = 0
+    ended = False
+    last = time.monotonic()
+    while not (stop or ended):
+        payload = inbox.get(TICK_S)
+        batch = [] if payload is None else [(keys.poses, payload)]
+        # Refinements that came with the end still belong to the run: the batch is finished.
+        batch += [(keys.keyframes, p) for p in refined.drain()]
+        for topic, payload in batch:
+            try:
+                msg = _decode(payload)
+            except MessageError as e:
+                rejects(topic, e)
+                continue
+            if isinstance(msg, EndOfStream):
+                if topic == keys.poses:
+                    log.info("end of stream: %d frames, %d poses received", msg.frames, tracked)
+                    ended = True
+                continue
+            last = time.monotonic()
+            # Refinements and tracked poses race on two topics: the newer map decides, not the
+            # order of arrival; for one map the last pose received wins.
+            kept = latest.get(msg.seq)
+            if kept is None or msg.map_version >= kept.map_version:
+                latest[msg.seq] = msg
+            _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)
+            if topic == keys.poses:
+                tracked += 1
+            if args.count is not None and tracked >= args.count:
+                return 0
+        if not ended and args.timeout is not None and time.monotonic() - last > args.timeout:
+            log.error("no pose for %g s; giving up after %d poses", args.timeout, tracked)
+            return 1
+    return 0
+
+
+def _write_trajectory(path: Path, latest: dict[int, PoseMessage], session: str) -> None:
+    ordered = sorted(latest.values(), key=lambda m: (m.timestamp, m.seq))
+    traj = Trajectory.from_lists([m.timestamp for m in ordered], [m.T_wc for m in ordered])
+    try:
+        write_tum(path, traj, header=f"dimslam-poses, session {session}: camera-to-world")
+    except OSError as e:
+        raise DimslamError(f"{path}: cannot write the trajectory ({e.strerror})") from None
+    log.info("wrote %d poses to %s", len(traj), path)
+
+
+def run_poses(args: argparse.Namespace) -> int:
+    """Print the poses; the TUM file, if asked for, is written however the loop ends."""
+    cfg = transport_config(args)
+    keys = Keys(cfg.session)
+    stop = Stop()
+    inbox = Inbox(POSE_QUEUE, keys.poses)
+    refined = Inbox(POSE_QUEUE, keys.keyframes)
+    stop.watch(inbox)
+    latest: dict[int, PoseMessage] = {}
+
+    def on_refined(sample: zenoh.Sample) -> None:
+        refined.callback(sample)
+        inbox.wake()  # the main loop waits on the tracker's inbox only
+
+    try:
+        with stop.on_signals(), open_session(cfg, "poses") as session:
+            # Keep references: an unreferenced subscriber is undeclared (zenoh.md trap 4).
+            subscribers = [session.declare_subscriber(keys.poses, inbox.callback)]
+            if args.keyframes:
+                subscribers.append(session.declare_subscriber(keys.keyframes, on_refined))
+            # Declared after the subscriptions: a peer that sees this token knows we listen.
+            presence = Presence(session, keys, "poses", on_change=_log_peer)
+            code = _receive(args, keys, inbox, refined, stop, latest)
+            presence.close()
+            for subscriber in subscribers:
+                subscriber.undeclare()
+    finally:
+        if args.out is not None and latest:
+            _write_trajectory(args.out, latest, cfg.session)
+    if args.out is not None and not latest:
+        log.warning("no pose received; %s not written", args.out)
+    return code
+
+
+def poses_main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="dimslam-poses", description=POSES_DESCRIPTION)
+    _poses_options(parser)
+    add_transport_options(parser)
+    return entry.main(parser, run_poses, argv)
+
+
+if __name__ == "__main__":
+    # `python -m dimslam.common.net.clients camera|poses ...` where the scripts are not installed.
+    mains = {"camera": camera_main, "poses": poses_main}
+    if len(sys.argv) < 2 or sys.argv[1] not in mains:
+        sys.exit("usage: python -m dimslam.common.net.clients {camera,poses} [options]")
+    sys.exit(mains[sys.argv[1]](sys.argv[2:]))

@@ -1,0 +1,224 @@
+"""`dimslam run` through the real service: mapper, tracker, camera and a pose client as processes.
+
+All four run on loopback in a session of their own (free ports, scouting off); the camera
+streams in lockstep so that every frame is tracked, and the tracker runs at most `map_lag`
+(default `MAP_LAG`) mapping rounds ahead of the map, so that every round is mapped (an offline
+run's choice; live use leaves the tracker free). The mapper writes the final poses
+(`trajectory.txt`, keyframes refined, other frames re-anchored to their keyframe), the tracker
+the poses as first published (`trajectory_online.txt`), the pose client what a subscriber
+received (`poses_received.txt`). Each process logs to `<role>.log` in the output folder.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+import time
+from contextlib import ExitStack
+from pathlib import Path
+
+import torch
+
+from dimslam.common.config import SlamConfig
+from dimslam.common.errors import DimslamError
+from dimslam.common.eval.report import RunSummary, report_run
+from dimslam.common.io.trajectory import read_tum
+from dimslam.common.options import flat_settings, to_dict
+
+log = logging.getLogger(__name__)
+
+STOP_GRACE_S = 20.0
+"""How long a process may take to flush and exit after SIGTERM before it is killed."""
+MAP_LAG = 1
+"""Mapping rounds the tracker may run ahead of the map (`dimslam-tracker --map-lag`): one,
+so tracking overlaps the round in progress; a tracker faster than its mapper (two CPU
+processes) would otherwise track most frames on a map rounds old, and the mapper, taking its
+pending batches together, ran 26 rounds for 7-Scenes' 500 frames instead of 100. The round
+it runs ahead costs accuracy: 0 (wait for every round) tracks as well as one process does,
+and as slowly (docs/results.md, "Service vs single process")."""
+
+
+def loopback_endpoints(count: int) -> list[str]:
+    """`count` distinct free loopback endpoints, `tcp/127.0.0.1:<port>`.
+
+    The sockets stay bound until all ports are chosen: ports picked one at a time (bind to 0,
+    close, again) can repeat, and two sessions then fight over one port.
+    """
+    with ExitStack() as stack:
+        sockets = [stack.enter_context(socket.socket()) for _ in range(count)]
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [f"tcp/127.0.0.1:{s.getsockname()[1]}" for s in sockets]
+
+
+def _settings_args(cfg: SlamConfig) -> list[str]:
+    """Every setting as `--section.field=value` ('=': values may start with '-'), so each
+    process runs exactly `cfg`."""
+    return [f"--{name}={text}" for name, text in flat_settings(to_dict(cfg)).items()]
+
+
+def run_service(
+    source: str,
+    out_dir: Path,
+    cfg: SlamConfig,
+    device: torch.device,
+    threads: int | None = None,
+    map_lag: int = MAP_LAG,
+    max_frames: int | None = None,
+    layout: str | None = None,
+    mesh: bool = True,
+) -> RunSummary:
+    """Run the service on a dataset and write the outputs of `run_dataset` plus the online ones.
+
+    Raises:
+        DimslamError: a process failed (its log is named) or the dataset cannot be read.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for stale in ("trajectory.txt", "trajectory_online.txt", "poses_received.txt", "mesh.ply"):
+        (out_dir / stale).unlink(missing_ok=True)
+    tracker_ep, mapper_ep = loopback_endpoints(2)
+    session = f"run{os.getpid()}"
+    total = threads or torch.get_num_threads()
+    compute = ["--threads", str(max(1, total // 2))]
+    if device.type == "cuda":
+        compute += ["--gpu", str(device.index or 0)]
+    settings = ["--preset", "paper", *_settings_args(cfg)]
+    both = ["--connect", tracker_ep, "--connect", mapper_ep]
+    commands = {
+        "mapper": [
+            "dimslam.mapper.cli",
+            "--listen", mapper_ep, "--connect", tracker_ep,
+            "--out", str(out_dir), "--exit-at-end", *(["--mesh"] if mesh else []),
+            *compute, *settings,
+        ],
+        "tracker": [
+            "dimslam.tracker.cli",
+            "--listen", tracker_ep, "--connect", mapper_ep,
+            "--out", str(out_dir), "--map-lag", str(map_lag), *compute, *settings,
+        ],
+        "poses": [
+            "dimslam.common.net.clients", "poses", *both,
+            "--out", str(out_dir / "poses_received.txt"),
+        ],
+        "camera": [
+            "dimslam.common.net.clients", "camera", source, *both, "--lockstep", "--rate", "0",
+            *(["--width", str(cfg.width)] if cfg.width else []),
+            *(["--max-frames", str(max_frames)] if max_frames else []),
+            *(["--layout", layout] if layout else []),
+        ],
+    }  # fmt: skip
+    (out_dir / "config.json").write_text(
+        json.dumps(
+            {
+                "source": source,
+                "device": str(device),
+                "mode": "service",
+                "map_lag": map_lag,
+                **to_dict(cfg),
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    procs: dict[str, subprocess.Popen] = {}
+    logs = {}
+    started = time.perf_counter()
+    try:
+        for role, argv in commands.items():
+            logs[role] = open(out_dir / f"{role}.log", "w")  # noqa: SIM115 - closed below
+            procs[role] = subprocess.Popen(
+                [sys.executable, "-m", *argv[:1], *argv[1:], "--session", session],
+                stdout=logs[role],
+                stderr=subprocess.STDOUT,
+            )
+        print(f"service: mapper, tracker, camera and pose client up (session {session})")
+        codes = _wait(procs, out_dir)
+    finally:
+        for p in procs.values():
+            _stop(p)
+        for f in logs.values():
+            f.close()
+    seconds = time.perf_counter() - started
+    lost = codes.get("tracker") == 3
+    for role in ("camera", "tracker", "mapper", "poses"):
+        if codes.get(role) not in (0, None) and not lost:
+            raise DimslamError(
+                f"the {role} exited with code {codes[role]}; see {out_dir / (role + '.log')}"
+            )
+    traj_path = out_dir / "trajectory.txt"
+    if not traj_path.is_file():
+        raise DimslamError(f"the mapper wrote no trajectory; see {out_dir / 'mapper.log'}")
+    frames = len(read_tum(traj_path))
+    received = out_dir / "poses_received.txt"
+    n_received = len(read_tum(received)) if received.is_file() else 0
+    online = len(read_tum(out_dir / "trajectory_online.txt"))
+    print(f"poses published {online}, received by the client {n_received}, final {frames}")
+    mesh_path = out_dir / "mesh.ply"
+    metrics = report_run(
+        source,
+        out_dir,
+        layout,
+        mesh_path if mesh_path.is_file() else None,
+        seconds,
+        frames,
+        extra={
+            "poses_published": online,
+            "poses_received": n_received,
+            **_tracker_stats(out_dir / "tracker_stats.json"),
+        },
+    )
+    keyframes = len(read_tum(out_dir / "keyframes.txt"))
+    return RunSummary(frames, keyframes, seconds, lost, metrics)
+
+
+def _tracker_stats(path: Path) -> dict:
+    """The tracker's timing with the mapper busy and idle, for metrics.json."""
+    if not path.is_file():
+        return {}
+    stats = json.loads(path.read_text())
+    return {k: v for k, v in stats.items() if k.startswith(("median_", "frames_mapper"))}
+
+
+def _wait(procs: dict[str, subprocess.Popen], out_dir: Path) -> dict[str, int]:
+    """Wait for the camera, tracker and mapper to finish; stop early if one of them fails."""
+    codes: dict[str, int] = {}
+    main = ["camera", "tracker", "mapper"]
+    while len(codes) < len(main):
+        for role in main:
+            code = procs[role].poll()
+            if code is None or role in codes:
+                continue
+            codes[role] = code
+            if code != 0 and not (role == "tracker" and code == 3):
+                log.error("%s exited with %d (log: %s)", role, code, out_dir / f"{role}.log")
+                if "tracker" not in codes:  # a camera stops when the tracker is lost (exit 3)
+                    try:
+                        codes["tracker"] = procs["tracker"].wait(timeout=STOP_GRACE_S)
+                    except subprocess.TimeoutExpired:
+                        pass
+                return codes
+        running = [procs[r] for r in main if r not in codes]
+        if running:
+            try:
+                running[0].wait(timeout=1.0)  # supervision tick: notice a failure elsewhere
+            except subprocess.TimeoutExpired:
+                pass
+    try:
+        codes["poses"] = procs["poses"].wait(timeout=STOP_GRACE_S)
+    except subprocess.TimeoutExpired:
+        log.error("the pose client did not see the end of the stream")
+    return codes
+
+
+def _stop(p: subprocess.Popen) -> None:
+    if p.poll() is None:
+        p.terminate()
+        try:
+            p.wait(timeout=STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()

@@ -1,0 +1,309 @@
+"""Zenoh for the service: session config, key names, inboxes, liveliness, shutdown.
+
+Keys (built only by `Keys`): `dimslam/<session>/@v1/<topic>`; the verbatim `@v1` chunk is the
+messages' schema version, so a `dimslam/**` subscription of another major version never sees
+them (zenoh.md trap 11).
+
+| topic | from -> to | message | congestion | receiver's queue |
+|---|---|---|---|---|
+| frames | camera -> tracker | FrameMessage, EndOfStream | BLOCK | FRAME_QUEUE, drop oldest |
+| poses | tracker -> anyone | PoseMessage, EndOfStream | BLOCK, express | per client |
+| mapping | tracker -> mapper | MappingBatch, EndOfStream | BLOCK | BATCH_QUEUE, coalesced |
+| map | mapper -> tracker | MapSnapshot | BLOCK | 1, newest wins |
+| keyframes | mapper -> anyone | PoseMessage (refined) | BLOCK, express | per client |
+| query/{map,keyframes} | tracker -> mapper | snapshot, MappingBatch of keyframes | | |
+| query/{mesh,trajectory} | anyone -> mapper | PLY, TUM text | | |
+| alive/<role> | every process | liveliness token | | |
+
+Lockstep (the camera never more than K frames ahead of the published poses) bounds the frame
+queue; mapping batches are coalesced: a mapper that falls behind maps all pending frames in
+its next round. Poses are lossless: with DROP, the burst of poses published after the
+initialization lost 4 of 8 on loopback (measured), and a client expects one pose per frame.
+
+Default endpoints (one host, zenoh.md traps 9-10): peer mode, scouting off; the tracker listens
+on `tcp/127.0.0.1:7451`, the mapper on `:7452`; every process connects to both ports it does not
+listen on, and peer mode retries until they are up, so start order is free.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import signal
+import threading
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from dimslam.common.errors import DimslamError
+from dimslam.common.net.messages import SCHEMA
+
+log = logging.getLogger(__name__)
+
+TRACKER_PORT = 7451
+MAPPER_PORT = 7452
+FRAME_QUEUE = 256
+"""Frames the tracker holds before dropping the oldest (lockstep keeps it far below)."""
+BATCH_QUEUE = 64
+"""Mapping batches the mapper holds; it coalesces all pending ones into each round."""
+SHM_POOL_BYTES = 256 << 20
+"""Shared-memory pool so several map snapshots can be in flight (zenoh.md)."""
+
+_SESSION_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    """How a process joins the service."""
+
+    session: str = "default"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    zenoh_config: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not _SESSION_RE.fullmatch(self.session):  # match() lets a trailing newline in
+            raise DimslamError(
+                f"--session {self.session!r}: use letters, digits, '_', '-' and '.' only"
+            )
+
+
+def default_endpoints(role: str) -> tuple[list[str], list[str]]:
+    """(listen, connect) endpoints of `role` on one host."""
+    ports = {"tracker": TRACKER_PORT, "mapper": MAPPER_PORT}
+    # A role without a port still listens, on loopback only: zenoh's own default would be a
+    # random port on every interface (zenoh.md trap 9).
+    listen = [f"tcp/127.0.0.1:{ports.get(role, 0)}"]
+    connect = [f"tcp/127.0.0.1:{p}" for r, p in ports.items() if r != role]
+    return listen, connect
+
+
+def zenoh_config(cfg: TransportConfig, role: str) -> zenoh.Config:
+    """The zenoh configuration of `role`: the file if given, else one-host peer defaults.
+
+    `--connect` / `--listen` replace the endpoints of either.
+    """
+    if cfg.zenoh_config is not None:
+        try:
+            conf = zenoh.Config.from_file(str(cfg.zenoh_config))
+        except Exception as e:  # zenoh raises its own error type with the parser's message
+            raise DimslamError(f"--zenoh-config {cfg.zenoh_config}: {e}") from None
+        listen, connect = list(cfg.listen), list(cfg.connect)
+    else:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5(
+            "transport/shared_memory/transport_optimization/pool_size", str(SHM_POOL_BYTES)
+        )
+        listen, connect = default_endpoints(role)
+        listen = list(cfg.listen) or listen
+        connect = list(cfg.connect) or connect
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    return conf
+
+
+def open_session(cfg: TransportConfig, role: str) -> zenoh.Session:
+    """Open the zenoh session of `role`; use it in a `with` block (zenoh.md trap 1)."""
+    try:
+        return zenoh.open(zenoh_config(cfg, role))
+    except zenoh.ZError as e:
+        raise DimslamError(f"cannot open the zenoh session: {e}") from None
+
+
+class Keys:
+    """Every key expression of one session."""
+
+    def __init__(self, session: str) -> None:
+        self.root = f"dimslam/{session}/@v{SCHEMA}"
+
+    def __getattr__(self, topic: str) -> str:
+        if topic in {"frames", "poses", "mapping", "map", "keyframes"}:
+            return f"{self.root}/{topic}"
+        raise AttributeError(topic)
+
+    def query(self, what: str) -> str:
+        assert what in {"map", "mesh", "trajectory", "keyframes"}, what
+        return f"{self.root}/query/{what}"
+
+    def alive(self, role: str = "*") -> str:
+        return f"{self.root}/alive/{role}"
+
+
+def publisher(
+    session: zenoh.Session, key: str, lossless: bool, urgent: bool = False
+) -> zenoh.Publisher:
+    """A publisher with the topic's congestion policy.
+
+    Args:
+        lossless: BLOCK when the link is congested (frames in lockstep, batches, snapshots,
+            poses); otherwise DROP (live frames, display-only topics).
+        urgent: express (no batching) at high priority (poses).
+    """
+    congestion = zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP
+    if urgent:
+        return session.declare_publisher(
+            key,
+            congestion_control=congestion,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+            express=True,
+        )
+    return session.declare_publisher(key, congestion_control=congestion)
+
+
+class Inbox:
+    """A bounded, thread-safe queue of raw payloads fed by a zenoh callback.
+
+    The callback only copies the bytes (zenoh.md trap 7); decoding happens in the consumer.
+    When full, the oldest payload is dropped and counted: a subscriber can never block the
+    session's receive thread.
+    """
+
+    def __init__(self, capacity: int, name: str) -> None:
+        self.name = name
+        self._items: deque[bytes] = deque()
+        self._capacity = capacity
+        self._cond = threading.Condition()
+        self.dropped = 0
+
+    def put(self, payload: bytes) -> None:
+        with self._cond:
+            if len(self._items) >= self._capacity:
+                self._items.popleft()
+                self.dropped += 1
+                if self._capacity > 1:
+                    log.warning(
+                        "%s: queue full, dropped the oldest (%d so far)", self.name, self.dropped
+                    )
+            self._items.append(payload)
+            self._cond.notify_all()
+
+    def callback(self, sample: zenoh.Sample) -> None:
+        self.put(sample.payload.to_bytes())
+
+    def get(self, timeout: float) -> bytes | None:
+        """The oldest payload, waiting up to `timeout` seconds; None if none came."""
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def drain(self) -> list[bytes]:
+        """Everything queued, oldest first, without waiting."""
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+    def wake(self) -> None:
+        """Wake a waiting `get` (shutdown)."""
+        with self._cond:
+            self._cond.notify_all()
+
+
+class Rejects:
+    """Counts and logs messages that failed to decode; the process keeps running."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def __call__(self, topic: str, error: Exception) -> None:
+        self.count += 1
+        log.warning("rejected a message on %s (%d so far): %s", topic, self.count, error)
+
+
+class Presence:
+    """This process's liveliness token plus a watch on its peers' tokens.
+
+    `on_change(role, alive)` runs on zenoh's thread when a peer's token appears or vanishes
+    (a SIGKILLed peer's token vanishes within milliseconds on one host).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        role: str,
+        on_change: Callable[[str, bool], None] | None = None,
+    ) -> None:
+        self._lock = threading.Lock()
+        self._alive: dict[str, int] = {}
+        self._on_change = on_change
+        self._changed = threading.Condition(self._lock)
+        # Keep references: an unreferenced token or subscriber is undeclared (zenoh.md trap 4).
+        self.token = session.liveliness().declare_token(keys.alive(role))
+        self._watch = session.liveliness().declare_subscriber(
+            keys.alive(), self._sample, history=True
+        )
+
+    def _sample(self, sample: zenoh.Sample) -> None:
+        role = str(sample.key_expr).rsplit("/", 1)[-1]
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            count = self._alive.get(role, 0) + (1 if alive else -1)
+            self._alive[role] = max(count, 0)
+            self._changed.notify_all()
+        if self._on_change is not None:
+            self._on_change(role, alive)
+
+    def alive(self, role: str) -> bool:
+        with self._lock:
+            return self._alive.get(role, 0) > 0
+
+    def wait_for(self, role: str, timeout: float) -> bool:
+        """Wait until a `role` process is alive; returns whether it is."""
+        with self._lock:
+            return self._changed.wait_for(lambda: self._alive.get(role, 0) > 0, timeout)
+
+    def close(self) -> None:
+        self._watch.undeclare()
+        self.token.undeclare()
+
+
+class Stop:
+    """One event set by SIGINT/SIGTERM; loops wait on their inbox with a timeout and check it."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._inboxes: list[Inbox] = []
+
+    def watch(self, *inboxes: Inbox) -> None:
+        self._inboxes.extend(inboxes)
+
+    def set(self, reason: str = "") -> None:
+        if reason and not self.event.is_set():
+            log.info("stopping: %s", reason)
+        self.event.set()
+        for inbox in self._inboxes:
+            inbox.wake()
+
+    def __bool__(self) -> bool:
+        return self.event.is_set()
+
+    @contextmanager
+    def on_signals(self) -> Iterator[Stop]:
+        """Install SIGINT/SIGTERM handlers for the block's duration (main thread only)."""
+        previous = {}
+
+        def handler(signum: int, _frame) -> None:
+            self.set(signal.Signals(signum).name)
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+        try:
+            yield self
+        finally:
+            for sig, old in previous.items():
+                signal.signal(sig, old)

@@ -1,0 +1,145 @@
+"""The mapper's half of the pipeline: tracked frames in, map rounds, refined poses out.
+
+What the mapping side does with the frames the tracker hands over, written once for both
+drivers (`common/slam.py` in one process, `mapper/service.py` as a process of its own):
+
+1. The first hand-over initializes the map on its frames (`Mapper.initialize`).
+2. Every later one is followed by a mapping round on the newest `every` frames plus the
+   keyframes overlapping the newest (`Mapper.map`). Frames handed over in between rounds
+   (a mapper that fell behind, a stop) keep their tracked poses.
+3. After each round, every non-keyframe of the round records its pose relative to the
+   keyframe before it, so the final trajectory follows later refinements of that keyframe.
+4. Frames no window will use again lose their images.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+import trimesh
+
+from dimslam.common.config import SlamConfig
+from dimslam.common.geometry import pose
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.io.trajectory import Trajectory
+from dimslam.common.map.mesh import EmptyMeshError
+from dimslam.common.optim.window import FrameState, release_images
+from dimslam.mapper.mapper import Mapper, MapRound
+
+log = logging.getLogger(__name__)
+
+
+class BackEnd:
+    """The frames the mapper holds, the map, and the rounds that refine them."""
+
+    def __init__(
+        self, cfg: SlamConfig, camera: Camera, device: torch.device, generator: torch.Generator
+    ) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.mapper = Mapper(
+            cfg.mapper,
+            cfg.map,
+            cfg.loss,
+            cfg.render,
+            cfg.tracker.overlap,
+            cfg.tracker.overlap_pixels,
+            camera,
+            device,
+            generator,
+        )
+        self.frames: list[FrameState] = []
+        # Non-keyframe index -> (its keyframe, pose relative to it), for the final trajectory.
+        self.anchors: dict[int, tuple[FrameState, torch.Tensor]] = {}
+        self.initialized = False
+        self.rounds = 0
+        self.round_seconds: list[float] = []
+
+    @property
+    def field(self):
+        return self.mapper.field
+
+    @property
+    def keyframes(self) -> list[FrameState]:
+        return [f for f in self.frames if f.keyframe]
+
+    def add(self, frames: list[FrameState]) -> None:
+        """Frames handed over by the tracker (newest last), at their tracked poses."""
+        self.frames.extend(frames)
+
+    def step(self) -> MapRound:
+        """Initialize on the frames held, or run a mapping round on the newest of them.
+
+        Returns:
+            What the round did; `window` names the frames it refined.
+        """
+        started = time.perf_counter()
+        if not self.initialized:
+            result = self.mapper.initialize(self.frames)
+            self.initialized = True
+            log.info(
+                "initialized on %d frames in %.1f s (loss %.4f, warp %.4f)",
+                len(self.frames),
+                time.perf_counter() - started,
+                result.stats.loss,
+                result.stats.warp,
+            )
+            window = self.frames
+        else:
+            window = self.frames[-self.cfg.mapper.every :]
+            result = self.mapper.map(window, self.keyframes)
+        self.rounds += 1
+        self.round_seconds.append(time.perf_counter() - started)
+        self._anchor(window)
+        release_images(self.frames, self.cfg.kept_images)
+        return result
+
+    def finish(self) -> None:
+        """End of the sequence: the optional post-optimization over all keyframes."""
+        if self.initialized and self.cfg.mapper.post_iters > 0:
+            self.mapper.post_optimize(self.keyframes)
+
+    def _anchor(self, frames: list[FrameState]) -> None:
+        """Record each non-keyframe's pose relative to the keyframe before it."""
+        keyframes = self.keyframes
+        for f in frames:
+            if f.keyframe:
+                self.anchors.pop(f.index, None)
+                continue
+            before = [kf for kf in keyframes if kf.index <= f.index]
+            if before:
+                kf = before[-1]
+                self.anchors[f.index] = (kf, pose.compose(pose.invert(kf.T_wc), f.T_wc))
+
+    def final_pose(self, f: FrameState) -> torch.Tensor:
+        """A frame's final pose: keyframes as refined, other frames re-anchored."""
+        if not f.keyframe and f.index in self.anchors:
+            kf, rel = self.anchors[f.index]
+            return pose.normalize(pose.compose(kf.T_wc, rel))
+        return f.T_wc
+
+    def trajectory(self, keyframes_only: bool = False) -> Trajectory:
+        """Final poses of every frame (or of the keyframes); empty before initialization."""
+        frames = self.frames if self.initialized else []
+        if keyframes_only:
+            frames = [f for f in frames if f.keyframe]
+        if not frames:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(
+            np.array([f.timestamp for f in frames], dtype=np.float64),
+            np.stack([self.final_pose(f).detach().cpu().double().numpy() for f in frames]),
+        )
+
+    def extract_mesh(self) -> trimesh.Trimesh:
+        """The map's surface seen from every frame held (see `Mapper.extract_mesh`).
+
+        Raises:
+            EmptyMeshError: no map or no surface yet.
+        """
+        if not self.initialized:
+            raise EmptyMeshError("no map yet")
+        poses = torch.stack([f.T_wc for f in self.frames])
+        return self.mapper.extract_mesh(poses, self.cfg.render.far)
