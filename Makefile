@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 # Pinned: any other torch requirement pulls several GB of CUDA packages (README, "Install").
 TORCH := torch==2.13.0
 
-.PHONY: demo test lint format env clean
+.PHONY: demo test test-fast lint format env clean
 
 env: $(VENV)/.installed
 
@@ -21,6 +21,10 @@ demo: env
 
 test: env lint
 	$(BIN)/pytest -q
+
+# The unit tier only (tests/conftest.py): no zenoh, no processes, no SLAM run; under a minute.
+test-fast: env
+	$(BIN)/pytest -q -m "not integration and not e2e"
 
 lint: env
 	$(BIN)/ruff check .

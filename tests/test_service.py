@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
+from contextlib import ExitStack
 
 import numpy as np
 import pytest
@@ -22,6 +23,8 @@ from dimslam.common.io.trajectory import Trajectory, read_tum
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import PoseMessage, message_type
 from dimslam.common.net.transport import Inbox, Keys, Presence, TransportConfig, open_session
+
+pytestmark = pytest.mark.e2e
 
 FRAMES = 36
 
@@ -99,7 +102,7 @@ def test_tracker_keeps_publishing_when_the_mapper_dies(sequence, tmp_path):
         try:
             assert presence.wait_for("tracker", 60) and presence.wait_for("mapper", 60)
             procs["camera"] = _start(
-                "dimslam.common.net.clients", "camera", str(sequence), "--lockstep",
+                "dimslam.common.net.camera", str(sequence), "--lockstep",
                 "--ahead", "12", "--rate", "0", "--width", "80", "--connect", tracker_ep,
                 "--session", session,
                 log=logs["camera"],
@@ -134,7 +137,11 @@ def test_tracker_keeps_publishing_when_the_mapper_dies(sequence, tmp_path):
 
 
 class Service:
-    """Service processes of one test session, with a harness session watching poses and maps."""
+    """Service processes of one test session, with a harness session watching poses and maps.
+
+    Use as a context manager: the harness subscribes to the poses and the map snapshots
+    (`poses`, `maps`) and watches liveliness (`presence`); at the end every process is killed.
+    """
 
     def __init__(self, tmp_path, name: str) -> None:
         self.tmp = tmp_path
@@ -142,6 +149,23 @@ class Service:
         self.session = f"{name}{os.getpid()}"
         self.procs: list[subprocess.Popen] = []
         self.logs: list = []
+        self.poses, self.maps = Inbox(1000, "poses"), Inbox(1000, "maps")
+        self._stack = ExitStack()
+
+    def __enter__(self) -> "Service":
+        transport = TransportConfig(self.session, connect=(self.tracker_ep, self.mapper_ep))
+        zs = self._stack.enter_context(open_session(transport, "test"))
+        keys = Keys(self.session)
+        for key, inbox in ((keys.poses, self.poses), (keys.map, self.maps)):
+            sub = zs.declare_subscriber(key, inbox.callback)
+            self._stack.callback(sub.undeclare)
+        self.presence = Presence(zs, keys, "test")
+        self._stack.callback(self.presence.close)
+        self._stack.callback(self.close)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
 
     def start(self, role: str, *extra: str) -> subprocess.Popen:
         common = ["--session", self.session]
@@ -152,14 +176,7 @@ class Service:
             argv = ["dimslam.tracker.cli", "--listen", self.tracker_ep, "--connect", self.mapper_ep]
             argv += [*common, "--preset", "tiny", "--threads", "1"]
         else:
-            argv = [
-                "dimslam.common.net.clients",
-                "camera",
-                *extra[:1],
-                "--lockstep",
-                "--ahead",
-                "12",
-            ]
+            argv = ["dimslam.common.net.camera", *extra[:1], "--lockstep", "--ahead", "12"]
             argv += ["--rate", "0", "--width", "80", "--connect", self.tracker_ep, *common]
             extra = extra[1:]
         log = open(self.tmp / f"{role}{len(self.procs)}.log", "w")  # noqa: SIM115
@@ -194,70 +211,44 @@ def _poses_until_end(inbox: Inbox, on_pose=None) -> dict[int, PoseMessage]:
 
 
 def test_a_restarted_mapper_gets_the_trackers_map(sequence, tmp_path):
-    svc = Service(tmp_path, "restart")
-    transport = TransportConfig(svc.session, connect=(svc.tracker_ep, svc.mapper_ep))
-    with open_session(transport, "test") as zs:
-        keys = Keys(svc.session)
-        poses, maps = Inbox(1000, "poses"), Inbox(1000, "maps")
-        subs = [
-            zs.declare_subscriber(keys.poses, poses.callback),
-            zs.declare_subscriber(keys.map, maps.callback),
-        ]
-        presence = Presence(zs, keys, "test")
-        try:
-            mapper = svc.start("mapper")
-            svc.start("tracker")
-            assert presence.wait_for("tracker", 60) and presence.wait_for("mapper", 60)
-            # 2 frames/s: the stream outlasts the restarted mapper's start (seconds on 2 cores).
-            svc.start("camera", str(sequence), "--rate", "2")
-            restarted = []
+    with Service(tmp_path, "restart") as svc:
+        mapper = svc.start("mapper")
+        svc.start("tracker")
+        assert svc.presence.wait_for("tracker", 60) and svc.presence.wait_for("mapper", 60)
+        # 2 frames/s: the stream outlasts the restarted mapper's start (seconds on 2 cores).
+        svc.start("camera", str(sequence), "--rate", "2")
+        restarted = []
 
-            def restart(count: int) -> None:
-                if count == 14 and not restarted:
-                    mapper.send_signal(signal.SIGKILL)
-                    mapper.wait()
-                    maps.drain()
-                    restarted.append(svc.start("mapper"))
+        def restart(count: int) -> None:
+            if count == 14 and not restarted:
+                mapper.send_signal(signal.SIGKILL)
+                mapper.wait()
+                svc.maps.drain()
+                restarted.append(svc.start("mapper"))
 
-            seen = _poses_until_end(poses, restart)
-            assert set(seen) == set(range(FRAMES))
-            assert "the new mapper has no map: sending map version" in svc.log("tracker")
-            assert "continuing the tracker's map version" in svc.log("mapper")
-            # Its first round may still run after the stream's end: wait for it, bounded.
-            snap = maps.get(120)
-            assert snap is not None, "the restarted mapper published no snapshot"
-        finally:
-            svc.close()
-            presence.close()
-            for s in subs:
-                s.undeclare()
+        seen = _poses_until_end(svc.poses, restart)
+        assert set(seen) == set(range(FRAMES))
+        assert "the new mapper has no map: sending map version" in svc.log("tracker")
+        assert "continuing the tracker's map version" in svc.log("mapper")
+        # Its first round may still run after the stream's end: wait for it, bounded.
+        snap = svc.maps.get(120)
+        assert snap is not None, "the restarted mapper published no snapshot"
 
 
 def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):
-    svc = Service(tmp_path, "late")
-    transport = TransportConfig(svc.session, connect=(svc.tracker_ep, svc.mapper_ep))
     half = FRAMES // 2
-    with open_session(transport, "test") as zs:
-        keys = Keys(svc.session)
-        poses = Inbox(1000, "poses")
-        sub = zs.declare_subscriber(keys.poses, poses.callback)
-        presence = Presence(zs, keys, "test")
-        try:
-            svc.start("mapper")
-            first = svc.start("tracker")
-            assert presence.wait_for("tracker", 60) and presence.wait_for("mapper", 60)
-            svc.start("camera", str(sequence), "--end", str(half))
-            before = _poses_until_end(poses)
-            assert first.wait(60) == 0
-            late = svc.start("tracker")
-            assert presence.wait_for("tracker", 60)
-            svc.start("camera", str(sequence), "--start", str(half))
-            after = _poses_until_end(poses)
-            assert late.wait(60) == 0
-        finally:
-            svc.close()
-            presence.close()
-            sub.undeclare()
+    with Service(tmp_path, "late") as svc:
+        svc.start("mapper")
+        first = svc.start("tracker")
+        assert svc.presence.wait_for("tracker", 60) and svc.presence.wait_for("mapper", 60)
+        svc.start("camera", str(sequence), "--end", str(half))
+        before = _poses_until_end(svc.poses)
+        assert first.wait(60) == 0
+        late = svc.start("tracker")
+        assert svc.presence.wait_for("tracker", 60)
+        svc.start("camera", str(sequence), "--start", str(half))
+        after = _poses_until_end(svc.poses)
+        assert late.wait(60) == 0
     assert "this tracker continues it" in svc.log("tracker")
     assert set(before) == set(range(half)) and set(after) == set(range(FRAMES - half))
     # One trajectory in one map frame: a tracker that started a new map instead would restart
@@ -273,33 +264,22 @@ def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):
 def test_start_order_is_free_and_sigterm_flushes_every_output(sequence, tmp_path):
     """Tracker and camera first: frames wait for a mapper started later; then SIGTERM to both
     service processes mid-stream: each exits 0 promptly with its outputs written."""
-    svc = Service(tmp_path, "order")
     out = tmp_path / "out"
-    transport = TransportConfig(svc.session, connect=(svc.tracker_ep, svc.mapper_ep))
-    with open_session(transport, "test") as zs:
-        keys = Keys(svc.session)
-        poses = Inbox(1000, "poses")
-        sub = zs.declare_subscriber(keys.poses, poses.callback)
-        presence = Presence(zs, keys, "test")
-        try:
-            tracker = svc.start("tracker", "--out", str(out))
-            assert presence.wait_for("tracker", 60)
-            svc.start("camera", str(sequence))
-            assert poses.get(5) is None  # no mapper, no map: nothing can be tracked yet
-            mapper = svc.start("mapper", "--out", str(out))
-            seen = set()
-            while len(seen) < 16:
-                payload = poses.get(120)
-                assert payload is not None, "no pose after the mapper started"
-                seen.add(PoseMessage.from_bytes(payload).seq)
-            assert seen >= set(range(8))  # the frames held before the mapper came were tracked
-            for p in (tracker, mapper):
-                p.send_signal(signal.SIGTERM)
-            assert tracker.wait(30) == 0 and mapper.wait(30) == 0
-        finally:
-            svc.close()
-            presence.close()
-            sub.undeclare()
+    with Service(tmp_path, "order") as svc:
+        tracker = svc.start("tracker", "--out", str(out))
+        assert svc.presence.wait_for("tracker", 60)
+        svc.start("camera", str(sequence))
+        assert svc.poses.get(5) is None  # no mapper, no map: nothing can be tracked yet
+        mapper = svc.start("mapper", "--out", str(out))
+        seen = set()
+        while len(seen) < 16:
+            payload = svc.poses.get(120)
+            assert payload is not None, "no pose after the mapper started"
+            seen.add(PoseMessage.from_bytes(payload).seq)
+        assert seen >= set(range(8))  # the frames held before the mapper came were tracked
+        for p in (tracker, mapper):
+            p.send_signal(signal.SIGTERM)
+        assert tracker.wait(30) == 0 and mapper.wait(30) == 0
     online = read_tum(out / "trajectory_online.txt")
     final = read_tum(out / "trajectory.txt")
     assert len(online) >= 16 and len(final) >= 13

@@ -14,6 +14,7 @@ from functools import partial
 from pathlib import Path
 
 from dimslam.common.errors import DimslamError, EvaluationError
+from dimslam.common.eval.drift import scale_spread, segment_drift
 from dimslam.common.eval.evaluation import evaluate_trajectory, write_metrics
 from dimslam.common.eval.mesh_metrics import evaluate_mesh, load_mesh
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
@@ -46,6 +47,7 @@ def format_metrics(result: dict) -> str:
         ("ATE max", "ate_max_m", "{:.4f} m"),
         ("ATE RMSE, poses as published", "online_ate_rmse_m", "{:.4f} m"),
         ("alignment scale", "scale", "{:.4f}"),
+        ("scale spread, 30-frame segments", "segment_scale_spread", "{:.1%}"),
         ("RPE translation", "rpe_trans_per_m", "{:.4f} m/m"),
         ("RPE rotation", "rpe_rot_deg_per_frame", "{:.4f} deg/frame"),
         ("mesh accuracy", "accuracy_cm", "{:.2f} cm"),
@@ -150,6 +152,8 @@ def report_run(
         metrics["online_ate_rmse_m"] = evaluate_files(online, str(source), layout=layout)[
             "ate_rmse_m"
         ]
+    _, segments = segment_drift(read_tum(out_dir / "trajectory.txt"), gt)
+    metrics["segment_scale_spread"] = scale_spread(segments)
     metrics["seconds"] = seconds
     metrics["fps"] = frames / max(seconds, 1e-9)
     metrics.update(extra or {})

@@ -9,6 +9,10 @@ factor per face, so a surface point has the same colour from every view.
 Rendering is analytic: each pixel's ray is intersected with the room and the boxes (slab test),
 which gives exact z-depth. A seed fixes the furniture, the texture assignment and a smooth
 handheld-like camera path through the free middle of the room.
+
+Why one module of ~560 lines: the room, its textures, its camera path and the writer of its
+files define one scene together (the writer records the scene's own constants in calib.txt
+and the mesh); split, a change of the scene would touch several files at once.
 """
 
 from __future__ import annotations

@@ -101,11 +101,11 @@ def run_service(
             "--out", str(out_dir), "--map-lag", str(map_lag), *compute, *settings,
         ],
         "poses": [
-            "dimslam.common.net.clients", "poses", *both,
+            "dimslam.common.net.poses", *both,
             "--out", str(out_dir / "poses_received.txt"),
         ],
         "camera": [
-            "dimslam.common.net.clients", "camera", source, *both, "--lockstep", "--rate", "0",
+            "dimslam.common.net.camera", source, *both, "--lockstep", "--rate", "0",
             *(["--width", str(cfg.width)] if cfg.width else []),
             *(["--max-frames", str(max_frames)] if max_frames else []),
             *(["--layout", layout] if layout else []),

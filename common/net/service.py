@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
@@ -70,6 +71,30 @@ def map_lag_rounds(text: str) -> int:
 
 # ---------------------------------------------------------------------------------------------
 # synth
+
+
+TICK_S = 0.25
+"""Longest a client's wait lasts before the stop event is checked again (how fast a signal is
+noticed)."""
+
+
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
+    return value
+
+
+def log_peer(role: str, alive: bool) -> None:
+    if role in ("tracker", "mapper"):
+        log.info("%s %s", role, "is up" if alive else "went away")
 
 
 def add_compute_options(p: argparse.ArgumentParser) -> None:

@@ -21,6 +21,7 @@ def scene(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_every_console_script_has_help(script):
     exe = Path(sys.executable).parent / script

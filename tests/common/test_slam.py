@@ -21,9 +21,10 @@ def sequence(tmp_path_factory):
     return out
 
 
+@pytest.mark.e2e
 def test_run_writes_every_output(sequence, tmp_path):
     out = tmp_path / "run"
-    args = ["run", "--single-process", str(sequence), "--out", str(out), "--preset", "tiny"]
+    args = one_process(sequence, out)
     args += ["--mapper.init_iters", "10", "--mapper.prior_iters", "5", "--tracker.iters", "2"]
     assert main(args) == 0
     traj = read_tum(out / "trajectory.txt")
@@ -47,41 +48,28 @@ def test_overrides_are_typed_and_checked():
         apply_overrides(PRESETS["tiny"], {"tracker.iters": "many"})
 
 
+def one_process(sequence, out) -> list[str]:
+    """`dimslam run` in one process with the tiny preset (what each test adds comes after)."""
+    return ["run", "--single-process", str(sequence), "--out", str(out), "--preset", "tiny"]
+
+
 def test_bad_override_is_a_one_line_error(sequence, tmp_path, capsys):
-    args = [
-        "run",
-        "--single-process",
-        str(sequence),
-        "--out",
-        str(tmp_path / "x"),
-        "--tracker.iters",
-        "many",
-    ]
-    assert main(args) == 2
+    assert main([*one_process(sequence, tmp_path / "x"), "--tracker.iters", "many"]) == 2
     assert "--tracker.iters" in capsys.readouterr().err
 
 
 def test_map_lag_is_refused_in_one_process(sequence, tmp_path, capsys):
-    args = ["run", "--single-process", str(sequence), "--out", str(tmp_path / "x")]
-    assert main([*args, "--map-lag", "0"]) == 2
+    assert main([*one_process(sequence, tmp_path / "x"), "--map-lag", "0"]) == 2
     assert "--map-lag" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()  # refused before anything ran
 
 
 def test_too_short_a_sequence_is_refused(sequence, tmp_path, capsys):
-    args = [
-        "run",
-        "--single-process",
-        str(sequence),
-        "--out",
-        str(tmp_path / "x"),
-        "--preset",
-        "tiny",
-    ]
-    assert main([*args, "--max-frames", "2"]) == 2
+    assert main([*one_process(sequence, tmp_path / "x"), "--max-frames", "2"]) == 2
     assert "too short" in capsys.readouterr().err
 
 
+@pytest.mark.e2e
 def test_tiny_preset_tracks_a_synthetic_sequence(tmp_path):
     """End to end with an accuracy bound: the tiny preset on a freshly rendered sequence.
 
@@ -92,21 +80,7 @@ def test_tiny_preset_tracks_a_synthetic_sequence(tmp_path):
     seq = tmp_path / "seq"
     assert main(["synth", str(seq), "--frames", "40", "--size", "160x120", "--seed", "0"]) == 0
     out = tmp_path / "run"
-    assert (
-        main(
-            [
-                "run",
-                "--single-process",
-                str(seq),
-                "--out",
-                str(out),
-                "--preset",
-                "tiny",
-                "--no-mesh",
-            ]
-        )
-        == 0
-    )
+    assert main([*one_process(seq, out), "--no-mesh"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["matched"] == 40
     assert metrics["ate_rmse_m"] < 0.04

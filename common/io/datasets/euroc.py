@@ -20,10 +20,8 @@ import torch
 
 from dimslam.common.errors import DatasetError
 from dimslam.common.geometry import pose
-from dimslam.common.io.datasets.base import (
-    Entry,
-    FileReader,
-    Intrinsics,
+from dimslam.common.io.datasets.base import Entry, FileReader, Intrinsics
+from dimslam.common.io.datasets.files import (
     associate,
     attach,
     line_of,

@@ -11,7 +11,8 @@ import math
 from pathlib import Path
 from typing import ClassVar
 
-from dimslam.common.io.datasets.base import IMAGE_SUFFIXES, Entry, FileReader, natural_key
+from dimslam.common.io.datasets.base import IMAGE_SUFFIXES, Entry, FileReader
+from dimslam.common.io.datasets.files import natural_key
 
 
 def _is_image(path: Path) -> bool:

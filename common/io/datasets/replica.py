@@ -11,14 +11,8 @@ from pathlib import Path
 from typing import ClassVar
 
 from dimslam.common.errors import DatasetError
-from dimslam.common.io.datasets.base import (
-    Entry,
-    FileReader,
-    Intrinsics,
-    matrix_poses,
-    natural_key,
-    read_table,
-)
+from dimslam.common.io.datasets.base import Entry, FileReader, Intrinsics
+from dimslam.common.io.datasets.files import matrix_poses, natural_key, read_table
 
 FPS = 30.0
 # The renderer's fixed camera (NICE-SLAM configs/Replica/replica.yaml).

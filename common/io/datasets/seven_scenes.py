@@ -14,7 +14,8 @@ from typing import ClassVar
 import numpy as np
 
 from dimslam.common.errors import DatasetError
-from dimslam.common.io.datasets.base import Entry, FileReader, Intrinsics, read_rows
+from dimslam.common.io.datasets.base import Entry, FileReader, Intrinsics
+from dimslam.common.io.datasets.files import read_rows
 
 FPS = 30.0
 BUILTIN = Intrinsics(585.0, 585.0, 320.0, 240.0, (), (640, 480), "built-in 7-Scenes")

@@ -15,16 +15,8 @@ from typing import ClassVar
 import numpy as np
 
 from dimslam.common.errors import DatasetError
-from dimslam.common.io.datasets.base import (
-    CALIB_NAME,
-    Entry,
-    FileReader,
-    Intrinsics,
-    associate,
-    attach,
-    numeric_table,
-    read_rows,
-)
+from dimslam.common.io.datasets.base import CALIB_NAME, Entry, FileReader, Intrinsics
+from dimslam.common.io.datasets.files import associate, attach, numeric_table, read_rows
 from dimslam.common.io.trajectory import read_tum
 
 # The TUM RGB-D benchmark's calibration of its three Kinects' RGB cameras (640x480), as

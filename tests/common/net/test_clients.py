@@ -28,6 +28,8 @@ from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import EndOfStream, FrameMessage, PoseMessage, message_type
 from dimslam.common.net.transport import Inbox, Keys, Presence, publisher
 
+pytestmark = pytest.mark.integration
+
 FRAMES = 12
 WAIT_S = 20.0
 """Bound of every wait: far above what any step takes, so only a real hang reaches it."""

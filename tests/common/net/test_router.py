@@ -25,6 +25,8 @@ from dimslam.common.net import router
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.transport import SHM_POOL_BYTES, default_endpoints
 
+pytestmark = pytest.mark.integration
+
 DEPLOY = REPO / "deploy"
 ZENOH_FILES = sorted((DEPLOY / "zenoh").glob("*.json5"))
 START_TIMEOUT = 30.0

@@ -39,6 +39,8 @@ from dimslam.common.net.transport import (
     zenoh_config,
 )
 
+pytestmark = pytest.mark.integration
+
 WAIT = 10.0
 """Upper bound for anything that should happen within milliseconds on loopback."""
 

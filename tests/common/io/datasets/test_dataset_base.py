@@ -9,7 +9,8 @@ from dataset_fixtures import image, make_folder, make_tum, write_calib
 
 from dimslam.common.errors import DatasetError
 from dimslam.common.io.datasets import LAYOUTS, ReaderOptions, detect_layout, open_dataset
-from dimslam.common.io.datasets.base import associate, read_image
+from dimslam.common.io.datasets.base import read_image
+from dimslam.common.io.datasets.files import associate
 
 
 def test_layout_names():

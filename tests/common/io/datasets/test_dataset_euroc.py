@@ -88,19 +88,18 @@ def test_missing_sensor_yaml_names_it(tmp_path):
         open_dataset(seq.root)
 
 
-def test_resolution_mismatch_is_an_error(tmp_path):
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ("resolution: [32, 24]", "resolution: [752, 480]", "are for 752x480 images but the images"),
+        ("radial-tangential", "equidistant", "distortion model 'equidistant' is not supported"),
+    ],
+)
+def test_a_sensor_yaml_that_does_not_fit_is_an_error(tmp_path, old, new, message):
     seq = make_euroc(tmp_path / "seq")
     yaml = seq.root / "mav0" / "cam0" / "sensor.yaml"
-    yaml.write_text(yaml.read_text().replace("resolution: [32, 24]", "resolution: [752, 480]"))
-    with pytest.raises(DatasetError, match="are for 752x480 images but the images are 32x24"):
-        _ = open_dataset(seq.root).camera
-
-
-def test_unsupported_distortion_model(tmp_path):
-    seq = make_euroc(tmp_path / "seq")
-    yaml = seq.root / "mav0" / "cam0" / "sensor.yaml"
-    yaml.write_text(yaml.read_text().replace("radial-tangential", "equidistant"))
-    with pytest.raises(DatasetError, match="distortion model 'equidistant' is not supported"):
+    yaml.write_text(yaml.read_text().replace(old, new))
+    with pytest.raises(DatasetError, match=message):
         _ = open_dataset(seq.root).camera
 
 

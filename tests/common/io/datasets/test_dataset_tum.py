@@ -61,27 +61,19 @@ def test_freiburg_size_mismatch_is_an_error(tmp_path):
         _ = open_dataset(seq.root).camera
 
 
-def test_malformed_rgb_txt_line(tmp_path):
+@pytest.mark.parametrize(
+    "name, line, message",
+    [
+        ("rgb.txt", "1305031109.0", r"rgb\.txt:10: expected 'timestamp filename'"),
+        ("rgb.txt", "soon rgb/x.png", r"rgb\.txt:10: not a number"),
+        ("groundtruth.txt", "1305031109.0 0 0 nan 0 0 0 1", r"groundtruth\.txt:9: non-finite"),
+    ],
+)
+def test_a_bad_line_names_its_file_and_line(tmp_path, name, line, message):
     seq = make_tum(tmp_path / "scene")
-    with open(seq.root / "rgb.txt", "a") as f:
-        f.write("1305031109.0\n")
-    with pytest.raises(DatasetError, match=r"rgb\.txt:10: expected 'timestamp filename'"):
-        open_dataset(seq.root)
-
-
-def test_non_numeric_timestamp(tmp_path):
-    seq = make_tum(tmp_path / "scene")
-    with open(seq.root / "rgb.txt", "a") as f:
-        f.write("soon rgb/x.png\n")
-    with pytest.raises(DatasetError, match=r"rgb\.txt:10: not a number"):
-        open_dataset(seq.root)
-
-
-def test_non_finite_ground_truth(tmp_path):
-    seq = make_tum(tmp_path / "scene")
-    with open(seq.root / "groundtruth.txt", "a") as f:
-        f.write("1305031109.0 0 0 nan 0 0 0 1\n")
-    with pytest.raises(DatasetError, match=r"groundtruth\.txt:9: non-finite"):
+    with open(seq.root / name, "a") as f:
+        f.write(line + "\n")
+    with pytest.raises(DatasetError, match=message):
         open_dataset(seq.root)
 
 

@@ -1,0 +1,98 @@
+"""Where along the path an estimate's error comes from: local accuracy and local scale.
+
+The whole trajectory is aligned once (Sim(3), as the ATE is); then the matched poses are cut
+into consecutive segments of `length` and each is aligned on its own. A small local ATE with a
+large global error, and local scales away from 1, say the error is scale drift between
+segments rather than tracking noise within them. `benchmarks/drift.py` prints the table; every
+run's metrics carry the spread of the segments' scales.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from dimslam.common.eval.evaluation import (
+    MIN_MATCHES,
+    TrajectoryMetrics,
+    associate,
+    evaluate_trajectory,
+    umeyama,
+)
+from dimslam.common.geometry import pose
+from dimslam.common.io.trajectory import Trajectory
+
+SEGMENT = 30
+"""Matched poses per segment by default: a second of video at 30 frames/s."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One segment of the path, in ground-truth units.
+
+    Attributes:
+        first, last: indices of its first and last matched pose.
+        global_err_m: mean error of its poses under the whole trajectory's alignment.
+        local_ate_m: RMSE after its own Sim(3) alignment.
+        local_scale: its own alignment's scale relative to the whole one's (1: no drift).
+        path_m: ground-truth distance travelled within it.
+        turn_deg: ground-truth rotation between its first and last pose.
+    """
+
+    first: int
+    last: int
+    global_err_m: float
+    local_ate_m: float
+    local_scale: float
+    path_m: float
+    turn_deg: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def segment_drift(
+    est: Trajectory, gt: Trajectory, length: int = SEGMENT
+) -> tuple[TrajectoryMetrics, list[Segment]]:
+    """The whole trajectory's metrics and its segments of `length` matched poses.
+
+    Raises:
+        ValueError: `length` below 3 (a Sim(3) needs 3 points).
+        EvaluationError: the trajectories cannot be compared (see `evaluate_trajectory`).
+    """
+    if length < MIN_MATCHES:
+        raise ValueError(f"segments need at least {MIN_MATCHES} poses, got {length}")
+    whole = evaluate_trajectory(est, gt)
+    idx_est, idx_gt = associate(est.timestamps, gt.timestamps)  # as evaluate_trajectory
+    E = whole.alignment.apply_poses(est.poses[idx_est])
+    G = gt.poses[idx_gt]
+    rows = []
+    for a in range(0, len(E) - length + 1, length):
+        e, g = E[a : a + length, :3, 3], G[a : a + length, :3, 3]
+        local = umeyama(e, g)
+        err = np.linalg.norm(local.apply_points(e) - g, axis=1)
+        turn = G[a, :3, :3].T @ G[a + length - 1, :3, :3]
+        rows.append(
+            Segment(
+                first=a,
+                last=a + length - 1,
+                global_err_m=float(whole.errors_m[a : a + length].mean()),
+                local_ate_m=float(np.sqrt(np.mean(err**2))),
+                local_scale=float(local.s),
+                path_m=float(np.linalg.norm(np.diff(g, axis=0), axis=1).sum()),
+                turn_deg=math.degrees(pose.rotation_angle(torch.from_numpy(turn)).item()),
+            )
+        )
+    return whole, rows
+
+
+def scale_spread(segments: list[Segment]) -> float:
+    """How far the segments' scales disagree: largest over smallest, minus 1 (0.05: 5 %);
+    NaN with fewer than two segments."""
+    if len(segments) < 2:
+        return math.nan
+    scales = [s.local_scale for s in segments]
+    return max(scales) / min(scales) - 1.0

@@ -1,0 +1,68 @@
+"""The tracker's half of the pipeline without a map: collecting, batching, motion guesses,
+and the mapper's refined poses coming back."""
+
+import pytest
+import torch
+from walls import CAM
+
+from dimslam.common.config import PRESETS
+from dimslam.common.geometry import pose
+from dimslam.common.optim.window import FrameState
+from dimslam.tracker.frontend import FrontEnd
+
+
+def front() -> FrontEnd:
+    return FrontEnd(PRESETS["tiny"], CAM, torch.Generator().manual_seed(0))
+
+
+def moved(x: float) -> torch.Tensor:
+    return pose.make_pose(torch.eye(3), torch.tensor([x, 0.0, 0.0]))
+
+
+def test_collect_hands_over_the_init_frames_once_complete():
+    f = front()
+    rgb = torch.zeros(CAM.height, CAM.width, 3)
+    n = f.cfg.mapper.init_frames
+    assert not any(f.collect(i, i / 30, rgb) for i in range(n - 1))
+    assert f.pending == []
+    assert f.collect(n - 1, 1.0, rgb)
+    batch = f.take_batch()
+    assert [s.index for s in batch] == list(range(n)) and f.pending == []
+    assert all(torch.equal(s.T_wc, torch.eye(4)) for s in batch)
+
+
+def test_a_batch_is_due_every_few_frames():
+    f = front()
+    every = f.cfg.mapper.every
+    for i in range(11, 11 + 2 * every):
+        f.pending.append(FrameState(i, i / 30, None, torch.eye(4)))
+        due = f.batch_due()
+        assert due == (i % every == 0), i
+        if due:
+            assert f.take_batch()[-1].index == i
+    # Frames numbered off the rhythm (a continued map) still go after `every` frames.
+    f.pending = [FrameState(i, 0.0, None, torch.eye(4)) for i in (101, 102, 103, 104)]
+    assert not f.batch_due()
+    f.pending.append(FrameState(106, 0.0, None, torch.eye(4)))
+    assert f.batch_due()
+
+
+def test_guess_repeats_the_motion_but_not_across_a_gap():
+    f = front()
+    f.frames = [FrameState(0, 0.0, None, moved(0.0)), FrameState(1, 0.0, None, moved(0.1))]
+    assert torch.allclose(f.guess(), moved(0.2), atol=1e-6)
+    f.frames[-1].index = 5  # frames 2-4 were skipped: no velocity over the gap
+    assert torch.allclose(f.guess(), moved(0.1))
+    f.next_guess = moved(1.0)  # a continued map's last pose wins, once
+    assert torch.allclose(f.guess(), moved(1.0))
+    assert f.next_guess is None
+
+
+def test_refined_poses_move_the_later_frames_with_them():
+    f = front()
+    f.frames = [FrameState(i, 0.0, None, moved(0.1 * i)) for i in range(4)]
+    # The mapper refined frames 0 and 1 (frame 1 moved 5 cm) and made frame 1 a keyframe.
+    f.apply_poses({0: moved(0.0), 1: moved(0.15)}, keyframes=[1])
+    assert f.frames[1].keyframe and not f.frames[2].keyframe
+    xs = [float(s.T_wc[0, 3]) for s in f.frames]
+    assert xs == pytest.approx([0.0, 0.15, 0.25, 0.35], abs=1e-6)
