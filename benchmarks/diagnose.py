@@ -42,7 +42,6 @@ from dimslam.common.optim.window import (
     FrameState,
     TrackingLost,
     adam,
-    constant_velocity,
     optimize_window,
     random_pixels,
 )
@@ -106,6 +105,14 @@ def fit_supervised(args):
     poses = relative_gt(frames)
     slam = Slam(cfg, camera, torch.device("cpu"))
     field, g = slam.back.mapper.field, slam.generator
+    cache = None
+    if args.map_cache is not None:
+        name = f"{Path(args.seq).name}-{len(frames)}f-{args.fit_iters}it-{camera.width}px.pt"
+        cache = args.map_cache / name
+        if cache.is_file():
+            field.load_state_dict(torch.load(cache))
+            print(f"fitted map from {cache}: {depth_error(slam, camera, poses[-1], depths[-1])}")
+            return cfg, camera, frames, poses, slam
     opt = torch.optim.Adam([{"params": list(field.parameters()), "lr": 1e-2}])
     rgb = torch.stack([torch.from_numpy(f.rgb).float() / 255 for f in frames])
     depth = torch.from_numpy(np.stack(depths))
@@ -119,37 +126,49 @@ def fit_supervised(args):
         loss.backward()
         opt.step()
     print(f"fitted map: {depth_error(slam, camera, poses[-1], depths[-1])} (last frame)")
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(field.state_dict(), cache)
     return cfg, camera, frames, poses, slam
 
 
 def cmd_map_oracle(args) -> None:
-    """Fit the map by supervision, then track every frame on it as the system would."""
+    """Fit the map by supervision, then track every frame on it as the system would (the
+    tracking half of the pipeline with the preset's solver; no mapping)."""
     cfg, camera, frames, poses, slam = fit_supervised(args)
-    field = slam.back.mapper.field
-    states = states_at(frames, poses)
-    states[0].keyframe = True
-    tracked = states[:2]
-    for s in states[2:]:
-        s.T_wc = constant_velocity(tracked[-1].T_wc, tracked[-2].T_wc)
-        guess = pose_error(s.T_wc, poses[s.index])
-        tracked.append(s)
-        kfs = [f for f in tracked if f.keyframe]
-        try:
-            res = slam.front.tracker.track(field, tracked[-cfg.tracker.local_frames :], kfs)
-        except TrackingLost as e:
-            print(f"frame {s.index}: lost ({e})")
-            return
-        if slam.front.tracker.is_keyframe(field, s, kfs[-1]):
-            s.keyframe = True
-        error = pose_error(s.T_wc, poses[s.index])
+    field, front = slam.back.field, slam.front
+    start = states_at(frames[:2], poses[:2])
+    start[0].keyframe = True
+    front.frames = start
+    front.map_changed(field, 1)
+    seconds = []
+    for i, f in enumerate(frames[2 : args.until], 2):
+        rgb = torch.from_numpy(f.rgb).float() / 255
+        began = time.perf_counter()
+        s = front.track(field, i, f.timestamp, rgb)
+        seconds.append(time.perf_counter() - began)
+        front.take_batch()  # nothing maps them
+        if s is None:
+            print(f"frame {i:3d} lost", flush=True)
+            continue
+        res = front.last_result
         print(
-            f"frame {s.index:3d} kf={int(s.keyframe)} guess {guess} -> {error} "
-            f"loss {res.stats.history[0]:.4f} -> {res.stats.loss:.4f} window {res.window}",
+            f"frame {i:3d} kf={int(s.keyframe)} {pose_error(s.T_wc, poses[i])} "
+            f"loss {res.stats.history[0]:.4f} -> {res.stats.loss:.4f} its {res.stats.iterations} "
+            f"window {res.window} {1000 * seconds[-1]:.0f} ms",
             flush=True,
         )
-    stamps = np.array([f.timestamp for f in frames])
-    gt = Trajectory(stamps, torch.stack(poses).double().numpy())
-    est = Trajectory(stamps, torch.stack([s.T_wc for s in states]).double().numpy())
+    tracked = {s.index: s for s in front.frames}
+    frames = frames[: args.until]
+    stamps = np.array([frames[i].timestamp for i in sorted(tracked)])
+    gt = Trajectory(stamps, torch.stack([poses[i] for i in sorted(tracked)]).double().numpy())
+    est_poses = torch.stack([tracked[i].T_wc for i in sorted(tracked)])
+    est = Trajectory(stamps, est_poses.double().numpy())
+    print(
+        f"{len(tracked)} frames tracked, {len(front.lost)} lost, {len(front.keyframes)} "
+        f"keyframes; tracking step p50 {1000 * np.median(seconds):.0f} ms, "
+        f"p95 {1000 * np.percentile(seconds, 95):.0f} ms"
+    )
     for align in ("sim3", "se3"):
         m = evaluate_trajectory(est, gt, align=align)
         print(f"tracked on the oracle map: ATE {100 * m.ate_rmse_m:.2f} cm ({align} alignment)")
@@ -331,6 +350,13 @@ def main() -> None:
         type=int,
         default=0,
         help="run: every N frames, the map's depth scale at the newest frame (0: never)",
+    )
+    parser.add_argument("--until", type=int, help="map-oracle: track only frames before this")
+    parser.add_argument(
+        "--map-cache",
+        type=Path,
+        help="keep fitted oracle maps in this folder and reuse them (keyed by sequence, "
+        "frames, fit iterations and width)",
     )
     parser.add_argument(
         "--set", nargs="*", action="extend", default=[], metavar="SECTION.FIELD=VALUE"

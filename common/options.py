@@ -44,6 +44,10 @@ def _parse(kind: Any, text: str) -> Any:
         if text.lower() in ("none", ""):
             return None
         return _parse(next(a for a in args if a is not type(None)), text)
+    if origin is typing.Literal:
+        if text not in args:
+            raise ValueError(f"expected one of {', '.join(map(str, args))}, got {text!r}")
+        return text
     if origin is tuple:
         item = args[0]
         return tuple(_parse(item, part) for part in text.split(",") if part.strip())

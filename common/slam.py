@@ -25,7 +25,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.trajectory import Trajectory, write_tum
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
-from dimslam.common.optim.window import FrameState, TrackingLost
+from dimslam.common.optim.window import FrameState
 from dimslam.common.options import to_dict
 from dimslam.common.progress import Progress
 from dimslam.mapper.backend import BackEnd
@@ -47,6 +47,7 @@ class Slam:
         self.back = BackEnd(cfg, camera, device, self.generator)
         self.front = FrontEnd(cfg, camera, self.generator)
         self.last_loss = math.nan
+        self.fed = 0
 
     @property
     def initialized(self) -> bool:
@@ -62,25 +63,20 @@ class Slam:
         return self.front.keyframes
 
     def add(self, frame: Frame) -> list[FrameState]:
-        """Process one frame; returns the frames whose poses became known (for publishing).
-
-        Raises:
-            TrackingLost: the optimization diverged; `trajectory()` still has every pose so far.
-        """
+        """Process one frame; returns the frames whose poses became known (for publishing):
+        none while initializing or when the frame is lost (`lost_frames`)."""
         rgb = torch.from_numpy(frame.rgb).to(self.device).float() / 255.0
         if rgb.shape[:2] != (self.camera.height, self.camera.width):
             raise DimslamError(f"frame {frame.index}: size {rgb.shape[1]}x{rgb.shape[0]} != camera")
-        index = len(self.frames)
+        index, self.fed = self.fed, self.fed + 1  # position in the stream, after the stride
         if not self.initialized:
             if not self.front.collect(index, frame.timestamp, rgb):
                 return []
             self.last_loss = self._map_batch().stats.loss
             return list(self.frames)
-        try:
-            state = self.front.track(self.back.field, index, frame.timestamp, rgb)
-        except TrackingLost:
-            self.back.add(self.front.take_batch())  # tracked so far: kept at their poses
-            raise
+        state = self.front.track(self.back.field, index, frame.timestamp, rgb)
+        if state is None:
+            return []
         self.last_loss = self.front.last_result.stats.loss
         if self.front.batch_due():
             self._map_batch()
@@ -89,7 +85,14 @@ class Slam:
     def _map_batch(self) -> MapRound:
         """Hand the frames tracked since the last round to the mapper and map them."""
         self.back.add(self.front.take_batch())
-        return self.back.step()
+        result = self.back.step()
+        self.front.map_changed(self.back.field, self.back.rounds)
+        return result
+
+    @property
+    def lost_frames(self) -> list[tuple[int, float]]:
+        """`(index, timestamp)` of every frame the tracker could not place."""
+        return self.front.lost
 
     def finish(self) -> None:
         """End of the sequence: initialize a short one, map the last frames, post-optimize."""
@@ -128,8 +131,8 @@ def run_dataset(
     """Run SLAM on a dataset and write trajectory, keyframes, mesh, config, log and metrics.
 
     Raises:
-        DimslamError: bad input. Tracking loss does not raise: the outputs so far are written
-            and `RunSummary.lost` is set.
+        DimslamError: bad input. Lost frames do not raise: they have no pose in the outputs
+            and are counted in `RunSummary.frames_lost` and `metrics.json`.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     handler = logging.FileHandler(out_dir / "log.txt", mode="w")
@@ -153,26 +156,30 @@ def run_dataset(
         )
         slam = Slam(cfg, camera, device)
         bar = Progress(len(reader), "slam")
-        lost = False
         started = time.perf_counter()
-        try:
-            for n, frame in enumerate(reader, 1):
-                slam.add(frame)
-                bar.update(n, loss=slam.last_loss, kf=len(slam.keyframes))
-            slam.finish()
-        except TrackingLost as e:
-            lost = True
-            log.error("tracking lost at frame %d: %s", len(slam.frames), e)
+        for n, frame in enumerate(reader, 1):
+            slam.add(frame)
+            bar.update(n, loss=slam.last_loss, kf=len(slam.keyframes), lost=len(slam.lost_frames))
+        slam.finish()
         seconds = bar.close(kf=len(slam.keyframes))
         traj = slam.trajectory()
         write_tum(out_dir / "trajectory.txt", traj, header=f"dimslam estimate of {source}")
         write_tum(out_dir / "keyframes.txt", slam.keyframe_trajectory(), header="keyframes")
         mesh_path = None
-        if mesh and slam.initialized and not lost:
+        if mesh and slam.initialized:
             mesh_path = _write_mesh(slam, out_dir / "mesh.ply")
-        metrics = report_run(source, out_dir, layout, mesh_path, seconds, len(traj))
+        lost = len(slam.lost_frames)
+        if lost:
+            log.warning("%d frames lost (no pose): %s", lost, [i for i, _ in slam.lost_frames])
+        metrics = report_run(
+            source, out_dir, layout, mesh_path, seconds, len(traj), {"frames_lost": lost}
+        )
         return RunSummary(
-            len(slam.frames), len(slam.keyframes), time.perf_counter() - started, lost, metrics
+            len(slam.frames) + lost,
+            len(slam.keyframes),
+            time.perf_counter() - started,
+            lost,
+            metrics,
         )
     finally:
         logging.getLogger().removeHandler(handler)

@@ -5,10 +5,11 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
 
 - Batch 0 holds the first frames: the mapper initializes on them and publishes snapshot 1.
 - Every later batch brings the frames since the previous one, with their tracked poses and
-  keyframe flags. All batches pending when a round starts are taken together (the
-  backpressure policy of a mapper that falls behind); the round runs on the newest `every`
-  frames plus overlapping keyframes, exactly as in one process, so the frames in between keep
-  their tracked poses. Offline runs avoid this with `dimslam-tracker --map-lag`.
+  keyframe flags. Each batch gets its own round while at most `MAX_BACKLOG` wait; a mapper
+  with more waiting has fallen behind (a live stream) and takes them all into one round (its
+  backpressure policy): the round runs on the newest `every` frames plus overlapping
+  keyframes, exactly as in one process, so the frames in between keep their tracked poses.
+  Offline runs never fall that far behind (`dimslam-tracker --map-lag`).
 - After each round: a versioned snapshot (map tensors, refined poses of every keyframe and of
   the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
 - A tracker whose mapper was restarted sends its own snapshot on the mapping topic, then its
@@ -59,6 +60,10 @@ from dimslam.mapper.backend import BackEnd
 log = logging.getLogger(__name__)
 
 WAIT_S = 0.5
+MAX_BACKLOG = 2
+"""Batches that may wait and still be mapped one round each. A tracker at `--map-lag 1` can
+have two waiting at the end of a round (it tracks fast, the mapper reads its inbox a moment
+later); more means the mapper has fallen behind a live stream."""
 STOP_GRACE_S = 2.0
 """At a stop, how long the mapper waits for the tracker's last batch and end of stream."""
 
@@ -89,6 +94,7 @@ class MapperService:
         self.snapshot_bytes: bytes | None = None
         self.seed: MapSnapshot | None = None
         self.rejects = Rejects()
+        self.backlog: list[MappingBatch] = []  # received, not yet mapped
         self.batches_in = Inbox(BATCH_QUEUE, "mapping batches")
         self.mesh_queries: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         stop.watch(self.batches_in)
@@ -157,13 +163,18 @@ class MapperService:
         """Map until a stop signal (or the end of the stream with `exit_at_end`)."""
         while not self.stop:
             self._answer_meshes()
-            payload = self.batches_in.get(WAIT_S)
-            if payload is None:
-                continue
-            batches = self._parse([payload, *self.batches_in.drain()])
-            if batches and self._receive(batches):
-                self._step(batches)
-            if self.ended:
+            if self.backlog:
+                self.backlog += self._parse(self.batches_in.drain())
+            else:
+                payload = self.batches_in.get(WAIT_S)
+                if payload is None:
+                    continue
+                self.backlog = self._parse([payload, *self.batches_in.drain()])
+            n = 1 if len(self.backlog) <= MAX_BACKLOG else len(self.backlog)
+            take, self.backlog = self.backlog[:n], self.backlog[n:]
+            if take and self._receive(take):
+                self._step(take)
+            if self.ended and not self.backlog:
                 self._finish()
                 if self.exit_at_end:
                     break
@@ -208,11 +219,15 @@ class MapperService:
         for the tracker's end of stream at most `STOP_GRACE_S`."""
         deadline = time.monotonic() + STOP_GRACE_S
         kept = 0
-        while not self.ended and (left := deadline - time.monotonic()) > 0:
-            payload = self.batches_in.get(min(left, WAIT_S))
-            if payload is None:
-                continue
-            batches = self._parse([payload, *self.batches_in.drain()])
+        waiting, self.backlog = self.backlog, []
+        while waiting or (not self.ended and (left := deadline - time.monotonic()) > 0):
+            batches = waiting
+            waiting = []
+            if not batches:
+                payload = self.batches_in.get(min(left, WAIT_S))
+                if payload is None:
+                    continue
+                batches = self._parse([payload, *self.batches_in.drain()])
             batches = [b for b in batches if b.round > 0]  # never a new stream at a stop
             if batches and self.version > 0 and self._receive(batches):
                 kept += sum(len(b.frames) for b in batches)

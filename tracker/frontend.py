@@ -6,19 +6,24 @@ What every frame goes through on the tracking side, written once for both driver
 1. Until the map exists, frames are collected at the identity; the first `init_frames` are
    handed to the mapper together (`collect`).
 2. Then each frame enters at a motion guess (constant velocity, or the pose a continued map
-   left, or the last pose across a gap in the stream), is tracked against the map
-   (`Tracker.track`), and may become a keyframe (`Tracker.is_keyframe`).
+   left, or the last pose across a longer gap in the stream), is tracked against the map by
+   the configured solver (`tracker.solver`: `DirectTracker` or the window `Tracker`), and may
+   become a keyframe. A frame the solver cannot place is *lost*: it gets no pose (none is
+   invented), and the next frames try the last good pose and the nearest keyframes' poses
+   until one aligns (relocalization).
 3. Every `mapper.every` frames the frames tracked since the last hand-over are due to the
    mapper (`batch_due`, `take_batch`); how they get there is the driver's business (the same
    objects in one process, a message in the service).
 4. Frames no window will use again lose their images.
 
 Refined poses come back from the mapper: in one process they are the same objects; the
-service applies a snapshot's poses with `apply_poses`.
+service applies a snapshot's poses with `apply_poses`. Either way `map_changed` tells the
+solver a new map arrived (the direct solver renders its references again then).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Mapping
 
 import torch
@@ -27,8 +32,15 @@ from dimslam.common.config import SlamConfig
 from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.render import FieldFn
-from dimslam.common.optim.window import FrameState, TrackingLost, constant_velocity, release_images
+from dimslam.common.optim.window import FrameState, TrackingLost, release_images
+from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import Tracker, TrackResult
+
+log = logging.getLogger(__name__)
+
+MAX_VELOCITY_STEPS = 4
+"""A gap of up to this many frames (dropped live frames) is bridged by repeating the last
+motion; across a longer one the last pose is the guess."""
 
 
 class FrontEnd:
@@ -37,11 +49,17 @@ class FrontEnd:
     def __init__(self, cfg: SlamConfig, camera: Camera, generator: torch.Generator) -> None:
         self.cfg = cfg
         self.camera = camera
-        self.tracker = Tracker(cfg.tracker, cfg.loss, cfg.render, camera, generator)
+        self.tracker: Tracker | DirectTracker
+        if cfg.tracker.solver == "direct":
+            self.tracker = DirectTracker(cfg.tracker, cfg.render, camera, generator)
+        else:
+            self.tracker = Tracker(cfg.tracker, cfg.loss, cfg.render, camera, generator)
         self.frames: list[FrameState] = []
         self.pending: list[FrameState] = []
         self.next_guess: torch.Tensor | None = None
         self.last_result: TrackResult | None = None
+        self.lost: list[tuple[int, float]] = []  # (index, timestamp) of the frames lost
+        self.relocalizing = False
 
     @property
     def keyframes(self) -> list[FrameState]:
@@ -64,43 +82,86 @@ class FrontEnd:
         self.pending = list(self.frames)
         return True
 
-    def guess(self) -> torch.Tensor:
-        """Where the next frame starts: a continued map's last pose, else constant velocity
-        over the last two frames, else (across a gap in the stream) the last pose."""
+    def guess(self, index: int) -> torch.Tensor:
+        """Where frame `index` starts: a continued map's last pose, else the last motion
+        repeated (once per frame since the last one, across a short gap), else the last pose."""
         if self.next_guess is not None:
             guess, self.next_guess = self.next_guess, None
             return guess
         last = self.frames[-1]
         before = self.frames[-2] if len(self.frames) > 1 else None
-        if before is not None and before.index == last.index - 1:
-            return constant_velocity(last.T_wc, before.T_wc)
-        return last.T_wc.clone()
+        steps = index - last.index
+        if before is None or before.index != last.index - 1 or not 0 < steps <= MAX_VELOCITY_STEPS:
+            return last.T_wc.clone()
+        motion = pose.compose(pose.invert(before.T_wc), last.T_wc)
+        guess = last.T_wc
+        for _ in range(steps):
+            guess = pose.compose(guess, motion)
+        return pose.normalize(guess)
 
-    def track(self, field: FieldFn, index: int, timestamp: float, rgb: torch.Tensor) -> FrameState:
+    def track(
+        self, field: FieldFn, index: int, timestamp: float, rgb: torch.Tensor
+    ) -> FrameState | None:
         """Track one frame against the map; it joins the frames and the next batch.
 
-        Raises:
-            TrackingLost: the motion model or the optimization diverged; the frame is not
-                kept, every earlier frame keeps its pose.
+        Returns:
+            The frame with its pose, or None if it is lost (it is then only counted in `lost`:
+            no pose is invented for it; the next frames relocalize).
         """
-        guess = self.guess()
-        if not torch.isfinite(guess).all():
-            raise TrackingLost(f"frame {index}: the motion model gives a non-finite pose")
-        state = FrameState(index, timestamp, rgb, guess)
-        self.frames.append(state)
         keyframes = self.keyframes
-        try:
-            self.last_result = self.tracker.track(
-                field, self.frames[-self.cfg.tracker.local_frames :], keyframes
-            )
-        except TrackingLost:
+        starts = self._starts(self.guess(index), keyframes)
+        state = FrameState(index, timestamp, rgb, starts[0])
+        self.frames.append(state)
+        error = None
+        for start in starts:
+            state.T_wc = start.clone()
+            try:
+                self.last_result = self.tracker.track(
+                    field, self.frames[-self.cfg.tracker.local_frames :], keyframes
+                )
+                break
+            except TrackingLost as e:
+                error = e
+        else:
             self.frames.pop()
-            raise
+            self.lost.append((index, timestamp))
+            if not self.relocalizing:
+                log.warning("tracking lost at frame %d (%s): relocalizing", index, error)
+            self.relocalizing = True
+            return None
+        if self.relocalizing:
+            log.info("relocalized at frame %d after %d lost frames", index, len(self.lost))
+            self.relocalizing = False
         if self.tracker.is_keyframe(field, state, keyframes[-1]):
             state.keyframe = True
+        stats = self.last_result.stats
+        log.debug(
+            "frame %d: %d iterations, loss %.4f, window %s%s",
+            index,
+            stats.iterations,
+            stats.loss,
+            self.last_result.window,
+            " (keyframe)" if state.keyframe else "",
+        )
         self.pending.append(state)
         release_images(self.frames, self.cfg.kept_images)
         return state
+
+    def _starts(self, guess: torch.Tensor, keyframes: list[FrameState]) -> list[torch.Tensor]:
+        """Poses a frame's solve starts from: the guess; while relocalizing, also the poses
+        of the keyframes nearest to it (up to `tracker.reloc_candidates` in all)."""
+        if not torch.isfinite(guess).all():
+            guess = self.frames[-1].T_wc
+        if not self.relocalizing:
+            return [guess]
+        centre = guess[:3, 3]
+        near = sorted(keyframes, key=lambda kf: float((kf.T_wc[:3, 3] - centre).norm()))
+        return [guess, *(kf.T_wc for kf in near[: self.cfg.tracker.reloc_candidates - 1])]
+
+    def map_changed(self, field: FieldFn, version: int) -> int:
+        """A new map (after a mapping round, or a snapshot swapped in): let the solver refresh
+        what it caches of it. Returns how many keyframes it rendered."""
+        return self.tracker.map_changed(field, self.keyframes, version)
 
     def batch_due(self) -> bool:
         """Whether the frames tracked since the last hand-over make a mapping round."""

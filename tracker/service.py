@@ -56,6 +56,7 @@ from dimslam.common.net.messages import (
     MessageError,
     PoseMessage,
     message_type,
+    now_ns,
 )
 from dimslam.common.net.transport import (
     FRAME_QUEUE,
@@ -66,7 +67,7 @@ from dimslam.common.net.transport import (
     Stop,
     publisher,
 )
-from dimslam.common.optim.window import FrameState, TrackingLost
+from dimslam.common.optim.window import FrameState
 from dimslam.common.progress import Progress
 from dimslam.tracker.frontend import FrontEnd
 
@@ -78,26 +79,57 @@ WAIT_S = 0.5
 
 @dataclass
 class TrackerStats:
-    """Counters a user reads at exit (and the benchmark)."""
+    """Counters a user reads at exit (and the benchmark).
 
+    Attributes:
+        received: frames that arrived (dropped ones included).
+        frames: frames processed (collected for the initialization or tracked).
+        tracked: frames given a pose by the solver.
+        lost: frames the solver could not place (published as lost, no pose).
+        skipped_live: live frames dropped because a newer one was already waiting.
+        snapshots: map snapshots swapped in.
+        track_seconds: per tracked or lost frame, the tracking step's time.
+        refresh_seconds: per snapshot, the time the solver took to refresh what it caches.
+        latency_seconds: per tracked frame, from the camera's send stamp to the published pose.
+        mapper_busy: per tracked frame, whether a mapping round was running.
+    """
+
+    received: int = 0
     frames: int = 0
     tracked: int = 0
+    lost: int = 0
     skipped_live: int = 0
     snapshots: int = 0
     track_seconds: list[float] = field(default_factory=list)
+    refresh_seconds: list[float] = field(default_factory=list)
+    latency_seconds: list[float] = field(default_factory=list)
     mapper_busy: list[bool] = field(default_factory=list)
 
-    def summary(self) -> dict:
-        """Median tracking time per frame with the mapper busy and idle (the overlap)."""
+    def summary(self, dropped_in_queue: int = 0) -> dict:
+        """Counts, tracking time per frame (median with the mapper busy and idle; p50 and
+        p95 over all), latency p50 / p95, in milliseconds."""
         t = np.array(self.track_seconds)
         busy = np.array(self.mapper_busy, dtype=bool)
-        out = {"frames": self.frames, "tracked": self.tracked, "snapshots": self.snapshots}
+        out = {
+            "frames_received": self.received,
+            "frames": self.frames,
+            "tracked": self.tracked,
+            "frames_lost": self.lost,
+            "frames_dropped": self.skipped_live + dropped_in_queue,
+            "snapshots": self.snapshots,
+        }
         for name, sel in (("busy", busy), ("idle", ~busy)):
             out[f"frames_mapper_{name}"] = int(sel.sum())
-            out[f"median_track_ms_mapper_{name}"] = (
-                float(np.median(t[sel]) * 1000) if sel.any() else None
-            )
+            out[f"median_track_ms_mapper_{name}"] = _ms(t[sel], 50)
+        out["track_ms_p50"], out["track_ms_p95"] = _ms(t, 50), _ms(t, 95)
+        out["refresh_ms_p50"] = _ms(np.array(self.refresh_seconds), 50)
+        latency = np.array(self.latency_seconds)
+        out["latency_ms_p50"], out["latency_ms_p95"] = _ms(latency, 50), _ms(latency, 95)
         return out
+
+
+def _ms(seconds: np.ndarray, percentile: float) -> float | None:
+    return float(np.percentile(seconds, percentile) * 1000) if len(seconds) else None
 
 
 class TrackerService:
@@ -236,10 +268,9 @@ class TrackerService:
         return self.map_version > 0
 
     def run(self) -> int:
-        """Track until the stream ends or a stop signal; returns the exit code (3: lost)."""
+        """Track until the stream ends or a stop signal; returns the exit code (0)."""
         self.fetch_map()
         bar = Progress(None, "tracker")
-        code = 0
         try:
             while not self.stop:
                 if self.mapper_appeared.is_set():
@@ -254,14 +285,16 @@ class TrackerService:
                     continue
                 if self._handle(payload):
                     break
-                bar.update(self.stats.frames, kf=sum(f.keyframe for f in self.frames))
-        except TrackingLost as e:
-            log.error("tracking lost: %s", e)
-            code = 3
+                bar.update(
+                    self.stats.frames,
+                    kf=sum(f.keyframe for f in self.frames),
+                    lost=self.stats.lost,
+                    dropped=self.stats.skipped_live,
+                )
         finally:
             bar.close()
             self._end_of_stream()
-        return code
+        return 0
 
     def maps_in_wait(self) -> None:
         payload = self.maps_in.get(WAIT_S)
@@ -277,17 +310,18 @@ class TrackerService:
                 log.info("end of stream after %d frames", end.frames)
                 return True
             msg = FrameMessage.from_bytes(payload)
+            self.stats.received += 1
+            if msg.live and len(self.frames_in) > 0:
+                self.stats.skipped_live += 1  # a newer live frame is waiting: this one is stale
+                return False
             rgb = self._prepare(msg)
         except MessageError as e:
             self.rejects("frames", e)
             return False
-        if msg.live and len(self.frames_in) > 0:
-            self.stats.skipped_live += 1  # a newer live frame is waiting: this one is stale
-            return False
         if self.handover is not None:
             self._adopt()
         self.stats.frames += 1
-        self._process(msg.seq + self.offset, msg.timestamp, rgb)
+        self._process(msg.seq + self.offset, msg.timestamp, rgb, msg.stamp_ns)
         return False
 
     def _prepare(self, msg: FrameMessage) -> torch.Tensor:
@@ -308,7 +342,7 @@ class TrackerService:
             rgb = cv2.resize(rgb, self.camera.size, interpolation=cv2.INTER_AREA)
         return torch.from_numpy(rgb).to(self.device).float() / 255.0
 
-    def _process(self, seq: int, timestamp: float, rgb: torch.Tensor) -> None:
+    def _process(self, seq: int, timestamp: float, rgb: torch.Tensor, sent_ns: int) -> None:
         assert self.front is not None
         if not self.initialized:
             if self.front.collect(seq, timestamp, rgb):
@@ -317,10 +351,18 @@ class TrackerService:
             return
         started = time.perf_counter()
         state = self.front.track(self.field, seq, timestamp, rgb)
-        self.stats.tracked += 1
         self.stats.track_seconds.append(time.perf_counter() - started)
         self.stats.mapper_busy.append(self._mapper_busy())
+        if state is None:
+            self.stats.lost += 1
+            lost = PoseMessage(
+                seq - self.offset, timestamp, None, map_version=self.map_version, lost=True
+            )
+            self.pose_pub.put(lost.to_bytes())
+            return
+        self.stats.tracked += 1
         self._publish_pose(state)
+        self.stats.latency_seconds.append((now_ns() - sent_ns) / 1e9)
         if self.front.batch_due():
             self._send_batch(self.front.take_batch())
 
@@ -381,6 +423,9 @@ class TrackerService:
         first = not self.initialized
         if self.front is not None:
             self.front.apply_poses(snapshot_poses(snap, self.device), snap.keyframes)
+            started = time.perf_counter()
+            self.front.map_changed(self.field, snap.version)
+            self.stats.refresh_seconds.append(time.perf_counter() - started)
         self.map_version = snap.version
         self.map_round = snap.round
         self.stats.snapshots += 1
@@ -413,10 +458,11 @@ class TrackerService:
             log.warning("no mapper listening: %d mapping messages not delivered", len(self.outbox))
         self.pose_pub.put(end)
         log.info(
-            "%d frames, %d tracked, %d poses published, %d snapshots, %d rejected, "
+            "%d frames, %d tracked, %d lost, %d poses published, %d snapshots, %d rejected, "
             "%d live frames skipped, %d dropped",
             self.stats.frames,
             self.stats.tracked,
+            self.stats.lost,
             len(self.online),
             self.stats.snapshots,
             self.rejects.count,
@@ -437,7 +483,8 @@ class TrackerService:
     def write(self, out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
         write_tum(out / "trajectory_online.txt", self.online_trajectory(), header="as published")
-        (out / "tracker_stats.json").write_text(json.dumps(self.stats.summary(), indent=2) + "\n")
+        summary = self.stats.summary(self.frames_in.dropped)
+        (out / "tracker_stats.json").write_text(json.dumps(summary, indent=2) + "\n")
         log.info("wrote trajectory_online.txt and tracker_stats.json to %s", out)
 
     def close(self) -> None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 
@@ -43,19 +44,46 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    """Tracking budget and window (paper: 3000 px, 20 iterations, 11 local + 10 keyframes)."""
+    """Tracking: the solver, its budget and window (paper: the window objective on 3000 px,
+    20 iterations, 11 local + 10 keyframes)."""
 
-    pixels: int = option(3000, "High-gradient pixels per tracking step.")
-    iters: int = option(20, "Adam iterations per frame.")
-    pose_lr: float = option(1e-2, "Learning rate of the pose increments.")
-    local_frames: int = option(11, "Newest frames in the tracking window (paper: k-5..k+5).")
-    optimize_last: int = option(11, "How many of the newest window frames move (the rest anchor).")
-    keyframes: int = option(10, "Overlapping keyframes added (fixed) to the window.")
+    solver: Literal["direct", "adam"] = option(
+        "direct",
+        "direct: Gauss-Newton on the newest pose against rendered keyframe points "
+        "(tracker/direct.py); adam: the paper's window objective (this module).",
+    )
+    iters: int = option(
+        20, "Iterations per frame: Adam steps, or Gauss-Newton steps over all pyramid levels."
+    )
+    levels: int = option(4, "direct: image pyramid levels, coarse to fine.")
+    ref_points: int = option(800, "direct: high-gradient points rendered per keyframe.")
+    references: int = option(3, "direct: keyframes a frame is tracked against.")
+    huber: float = option(9 / 255, "direct: Huber threshold on intensity residuals in [0, 1].")
+    affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
+    lost_residual: float = option(
+        0.1, "direct: robust residual RMS above which a frame counts as lost."
+    )
+    min_inliers: float = option(
+        0.3, "direct: share of points within the Huber threshold below which a frame is lost."
+    )
+    max_jump_px: float = option(
+        40.0,
+        "direct: a solve that moves the view more than this (mean pixels) from the motion "
+        "guess has locked onto something else: the frame counts as lost.",
+    )
+    reloc_candidates: int = option(
+        6, "Poses tried when relocalizing: the last good one and the nearest keyframes'."
+    )
+    pixels: int = option(3000, "adam: high-gradient pixels per tracking step.")
+    pose_lr: float = option(1e-2, "adam: learning rate of the pose increments.")
+    local_frames: int = option(11, "adam: newest frames in the tracking window (paper: k-5..k+5).")
+    optimize_last: int = option(11, "adam: how many of the newest window frames move.")
+    keyframes: int = option(10, "adam: overlapping keyframes added (fixed) to the window.")
     overlap: float = option(0.7, "View overlap a keyframe needs to join the window.")
     overlap_pixels: int = option(100, "Pixels reprojected to measure overlap and flow.")
     keyframe_flow_px: float = option(10.0, "Mean reprojection flow that makes a new keyframe.")
     keyframe_overlap: float = option(0.85, "New keyframe when the last one sees less than this.")
-    max_loss: float = option(10.0, "Loss above which tracking counts as lost.")
+    max_loss: float = option(10.0, "adam: loss above which a frame counts as lost.")
 
 
 @dataclass(frozen=True)
@@ -163,6 +191,10 @@ class Tracker:
             return total, stats
 
         return objective
+
+    def map_changed(self, field: FieldFn, keyframes: list[FrameState], version: int) -> int:
+        """A new map: nothing is cached here (every step renders what it needs). Returns 0."""
+        return 0
 
     def is_keyframe(self, field: FieldFn, frame: FrameState, last_keyframe: FrameState) -> bool:
         """Whether `frame` becomes a keyframe.

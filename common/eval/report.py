@@ -118,7 +118,7 @@ class RunSummary:
     frames: int
     keyframes: int
     seconds: float
-    lost: bool
+    frames_lost: int
     metrics: dict
 
 

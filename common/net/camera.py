@@ -88,6 +88,13 @@ def _camera_options(p: argparse.ArgumentParser) -> None:
         "camera's own rate)",
     )
     g.add_argument(
+        "--live",
+        action="store_true",
+        help="replay a dataset or video as a live camera would send it: at its rate, frames "
+        "marked live and sent with DROP congestion control, so a busy tracker keeps only the "
+        "newest (a live camera index always is)",
+    )
+    g.add_argument(
         "--lockstep",
         action="store_true",
         help="never run more than --ahead frames beyond the tracker's published poses",
@@ -211,6 +218,7 @@ def _wait_for_tracker(
 
 def _stream(
     reader: Reader,
+    device: bool,
     live: bool,
     pub: zenoh.Publisher,
     args: argparse.Namespace,
@@ -218,8 +226,8 @@ def _stream(
     mark: _PoseMark,
 ) -> int:
     """Send the source's frames until it ends, `--max-frames`, or a stop; returns how many."""
-    # A live camera paces itself; waiting on its wall-clock stamps would only add latency.
-    pacer = _Pacer(args.rate if args.rate is not None else 0.0 if live else None)
+    # A camera device paces itself; waiting on its wall-clock stamps would only add latency.
+    pacer = _Pacer(args.rate if args.rate is not None else 0.0 if device else None)
     camera = reader.camera
     try:
         total = len(reader)
@@ -264,13 +272,16 @@ def run_camera(args: argparse.Namespace) -> int:
         open_from_args(args, args.source) as reader,
         open_session(cfg, "camera") as session,
     ):
-        live = reader.layout == CameraReader.layout
+        device = reader.layout == CameraReader.layout
+        live = device or args.live
+        if live and args.lockstep:
+            raise DimslamError("--lockstep waits for the tracker; a live stream never waits")
         pub = publisher(session, keys.frames, lossless=not live)
         presence = Presence(session, keys, "camera", on_change=on_peer)
         matching = pub.declare_matching_listener(lambda _status: changed.set())
         mark = _PoseMark(keys.poses)
         poses = session.declare_subscriber(keys.poses, mark.callback)
-        if not (live or args.no_wait):
+        if not (device or args.no_wait):
             log.info("waiting for a tracker in session %r", cfg.session)
             if _wait_for_tracker(pub, presence, changed, stop, args.wait_timeout):
                 watch_tracker.set()
@@ -280,7 +291,7 @@ def run_camera(args: argparse.Namespace) -> int:
                     f"{args.wait_timeout:g} s: start dimslam-tracker with the same --session "
                     "and endpoints, or pass --no-wait"
                 )
-        sent = 0 if stop else _stream(reader, live, pub, args, stop, mark)
+        sent = 0 if stop else _stream(reader, device, live, pub, args, stop, mark)
         # A tracker that leaves after the last frame has simply finished.
         watch_tracker.clear()
         end = EndOfStream(sent).to_bytes()

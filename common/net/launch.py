@@ -71,8 +71,13 @@ def run_service(
     max_frames: int | None = None,
     layout: str | None = None,
     mesh: bool = True,
+    realtime: float | None = None,
 ) -> RunSummary:
     """Run the service on a dataset and write the outputs of `run_dataset` plus the online ones.
+
+    With `realtime` (frames per second) the camera replays the dataset as a live camera would,
+    at that rate, without lockstep, and the tracker never waits for the map: frames it cannot
+    keep up with are dropped, and the figures say how many and how late the poses came.
 
     Raises:
         DimslamError: a process failed (its log is named) or the dataset cannot be read.
@@ -88,6 +93,10 @@ def run_service(
         compute += ["--gpu", str(device.index or 0)]
     settings = ["--preset", "paper", *_settings_args(cfg)]
     both = ["--connect", tracker_ep, "--connect", mapper_ep]
+    # Offline: in lockstep with the tracker, as fast as it goes; live: at the rate, never held.
+    pacing = (
+        ["--lockstep", "--rate", "0"] if realtime is None else ["--live", "--rate", str(realtime)]
+    )
     commands = {
         "mapper": [
             "dimslam.mapper.cli",
@@ -98,14 +107,16 @@ def run_service(
         "tracker": [
             "dimslam.tracker.cli",
             "--listen", tracker_ep, "--connect", mapper_ep,
-            "--out", str(out_dir), "--map-lag", str(map_lag), *compute, *settings,
+            "--out", str(out_dir), *compute, *settings,
+            *(["--map-lag", str(map_lag)] if realtime is None else []),
         ],
         "poses": [
             "dimslam.common.net.poses", *both,
             "--out", str(out_dir / "poses_received.txt"),
         ],
         "camera": [
-            "dimslam.common.net.camera", source, *both, "--lockstep", "--rate", "0",
+            "dimslam.common.net.camera", source, *both,
+            *pacing,
             *(["--width", str(cfg.width)] if cfg.width else []),
             *(["--max-frames", str(max_frames)] if max_frames else []),
             *(["--layout", layout] if layout else []),
@@ -117,7 +128,8 @@ def run_service(
                 "source": source,
                 "device": str(device),
                 "mode": "service",
-                "map_lag": map_lag,
+                "map_lag": map_lag if realtime is None else None,
+                "realtime_fps": realtime,
                 **to_dict(cfg),
             },
             indent=2,
@@ -143,9 +155,8 @@ def run_service(
         for f in logs.values():
             f.close()
     seconds = time.perf_counter() - started
-    lost = codes.get("tracker") == 3
     for role in ("camera", "tracker", "mapper", "poses"):
-        if codes.get(role) not in (0, None) and not lost:
+        if codes.get(role) not in (0, None):
             raise DimslamError(
                 f"the {role} exited with code {codes[role]}; see {out_dir / (role + '.log')}"
             )
@@ -157,6 +168,8 @@ def run_service(
     n_received = len(read_tum(received)) if received.is_file() else 0
     online = len(read_tum(out_dir / "trajectory_online.txt"))
     print(f"poses published {online}, received by the client {n_received}, final {frames}")
+    stats = _tracker_stats(out_dir / "tracker_stats.json")
+    print(_live_line(stats))
     mesh_path = out_dir / "mesh.ply"
     metrics = report_run(
         source,
@@ -168,19 +181,32 @@ def run_service(
         extra={
             "poses_published": online,
             "poses_received": n_received,
-            **_tracker_stats(out_dir / "tracker_stats.json"),
+            **stats,
         },
     )
     keyframes = len(read_tum(out_dir / "keyframes.txt"))
-    return RunSummary(frames, keyframes, seconds, lost, metrics)
+    return RunSummary(frames, keyframes, seconds, stats.get("frames_lost", 0), metrics)
 
 
 def _tracker_stats(path: Path) -> dict:
-    """The tracker's timing with the mapper busy and idle, for metrics.json."""
-    if not path.is_file():
-        return {}
-    stats = json.loads(path.read_text())
-    return {k: v for k, v in stats.items() if k.startswith(("median_", "frames_mapper"))}
+    """The tracker's counts and timings (`TrackerStats.summary`), for metrics.json."""
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _live_line(stats: dict) -> str:
+    """What the tracker did with the frames it received, and how late its poses came."""
+    if not stats:
+        return "the tracker wrote no statistics"
+
+    def ms(key: str) -> str:
+        return "-" if stats.get(key) is None else f"{stats[key]:.0f} ms"
+
+    return (
+        f"frames received {stats['frames_received']}, tracked {stats['tracked']}, "
+        f"dropped {stats['frames_dropped']}, lost {stats['frames_lost']}; tracking step "
+        f"p50 {ms('track_ms_p50')} p95 {ms('track_ms_p95')}; latency camera to pose "
+        f"p50 {ms('latency_ms_p50')} p95 {ms('latency_ms_p95')}"
+    )
 
 
 def _wait(procs: dict[str, subprocess.Popen], out_dir: Path) -> dict[str, int]:
@@ -193,13 +219,8 @@ def _wait(procs: dict[str, subprocess.Popen], out_dir: Path) -> dict[str, int]:
             if code is None or role in codes:
                 continue
             codes[role] = code
-            if code != 0 and not (role == "tracker" and code == 3):
+            if code != 0:
                 log.error("%s exited with %d (log: %s)", role, code, out_dir / f"{role}.log")
-                if "tracker" not in codes:  # a camera stops when the tracker is lost (exit 3)
-                    try:
-                        codes["tracker"] = procs["tracker"].wait(timeout=STOP_GRACE_S)
-                    except subprocess.TimeoutExpired:
-                        pass
                 return codes
         running = [procs[r] for r in main if r not in codes]
         if running:

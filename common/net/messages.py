@@ -290,43 +290,61 @@ class EndOfStream(Message):
 
 @dataclass(frozen=True, eq=False)
 class PoseMessage(Message):
-    """A solved camera pose (tracker -> anyone; mapper refinements are PoseMessages too).
+    """A solved camera pose (tracker -> anyone; mapper refinements are PoseMessages too), or
+    the news that a frame is lost.
 
     Attributes:
         seq: the frame's position in the stream.
         timestamp: the frame's own time, seconds.
-        T_wc: `(4, 4)` float64 camera-to-world.
+        T_wc: `(4, 4)` float64 camera-to-world; None when the frame is lost (no pose is
+            invented for it).
         keyframe: whether the frame is a keyframe.
         map_version: version of the map snapshot it was tracked against (0: initialization).
+        lost: the tracker could not place the frame (status "lost"); it is relocalizing.
     """
 
     TYPE: ClassVar[str] = "pose"
     seq: int
     timestamp: float
-    T_wc: np.ndarray
+    T_wc: np.ndarray | None
     keyframe: bool = False
     map_version: int = 0
     stamp_ns: int = field(default_factory=now_ns)
+    lost: bool = False
+
+    def __post_init__(self) -> None:
+        if self.lost != (self.T_wc is None):
+            raise ValueError("a pose message has a pose exactly when the frame is not lost")
+
+    @property
+    def status(self) -> str:
+        """ "lost" or "tracked"."""
+        return "lost" if self.lost else "tracked"
 
     def _body(self) -> dict:
         return {
             "seq": self.seq,
             "timestamp": self.timestamp,
-            "T_wc": pack_array(np.asarray(self.T_wc, dtype=np.float64)),
+            "T_wc": None if self.T_wc is None else pack_array(np.asarray(self.T_wc, np.float64)),
             "keyframe": self.keyframe,
             "map_version": self.map_version,
             "stamp_ns": self.stamp_ns,
+            "lost": self.lost,
         }
 
     @classmethod
     def _parse(cls, body: dict) -> PoseMessage:
+        lost = _get(body, "lost", bool)
+        if lost and body.get("T_wc") is not None:
+            raise MessageError("T_wc: a lost frame carries no pose")
         return cls(
             _count(body, "seq"),
             _finite(body, "timestamp"),
-            _pose("T_wc", body.get("T_wc")),
+            None if lost else _pose("T_wc", body.get("T_wc")),
             _get(body, "keyframe", bool),
             _count(body, "map_version"),
             _count(body, "stamp_ns"),
+            lost,
         )
 
 

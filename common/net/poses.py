@@ -95,18 +95,22 @@ def _decode(payload: bytes) -> PoseMessage | EndOfStream:
 
 
 def _format(msg: PoseMessage, as_json: bool, refined: bool) -> str:
+    """A JSON line, or a TUM line (a lost frame: a `#` comment line, which TUM readers skip)."""
     if as_json:
         return json.dumps(
             {
                 "seq": msg.seq,
                 "timestamp": msg.timestamp,
-                "T_wc": msg.T_wc.tolist(),
+                "status": msg.status,
+                "T_wc": None if msg.T_wc is None else msg.T_wc.tolist(),
                 "keyframe": msg.keyframe,
                 "map_version": msg.map_version,
                 "stamp_ns": msg.stamp_ns,
                 "refined": refined,
             }
         )
+    if msg.lost:
+        return f"# lost {msg.timestamp:.6f} frame {msg.seq}"
     return tum_lines(Trajectory.from_lists([msg.timestamp], [msg.T_wc]))[0]
 
 
@@ -153,7 +157,7 @@ def _receive(
             # Refinements and tracked poses race on two topics: the newer map decides, not the
             # order of arrival; for one map the last pose received wins.
             kept = latest.get(msg.seq)
-            if kept is None or msg.map_version >= kept.map_version:
+            if not msg.lost and (kept is None or msg.map_version >= kept.map_version):
                 latest[msg.seq] = msg
             _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)
             if topic == keys.poses:

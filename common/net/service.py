@@ -85,6 +85,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def positive_rate(text: str) -> float:
+    """A frame rate: a positive number of frames per second."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive frame rate, got {text}")
+    return value
+
+
 def positive_seconds(text: str) -> float:
     value = float(text)
     if not (math.isfinite(value) and value > 0):

@@ -1,19 +1,13 @@
 """Tracker pieces that need no trained map: the motion model and the keyframe rules."""
 
 import torch
-from walls import CAM, textured_wall_image
+from walls import CAM, textured_wall_image, wall
 
 from dimslam.common.geometry import pose
-from dimslam.common.map.field import FieldOutput
 from dimslam.common.map.render import RenderConfig
 from dimslam.common.optim.objective import LossConfig
 from dimslam.common.optim.window import FrameState, constant_velocity
 from dimslam.tracker.tracker import Tracker, TrackerConfig
-
-
-def wall(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
-    """A wall at z = 2 in front of the origin."""
-    return FieldOutput(torch.sigmoid(2000 * (p[:, 2] - 2.0)), torch.full_like(p, 0.5))
 
 
 def frame_at(T: torch.Tensor) -> FrameState:

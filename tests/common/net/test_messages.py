@@ -85,6 +85,7 @@ def _examples() -> list[messages.Message]:
             (0, 5),
             stamp_ns=2,
         ),
+        PoseMessage(5, 1.5, None, map_version=2, stamp_ns=790, lost=True),
     ]
 
 
@@ -348,6 +349,19 @@ def test_pose_must_be_a_finite_rigid_transform(bad):
         MappingBatch.from_bytes(MappingBatch(0, frames, CAM).to_bytes())
     with pytest.raises(MessageError, match=r"poses\[0\]"):
         MapSnapshot.from_bytes(MapSnapshot(1, 0, "c", {}, {0: T}).to_bytes())
+
+
+def test_a_lost_frame_carries_a_status_and_no_pose():
+    lost = PoseMessage.from_bytes(PoseMessage(7, 2.0, None, lost=True).to_bytes())
+    assert lost.status == "lost" and lost.T_wc is None and lost.seq == 7
+    assert PoseMessage(7, 2.0, np.eye(4)).status == "tracked"
+    body = _body(_examples()[2])
+    with pytest.raises(MessageError, match="a lost frame carries no pose"):
+        PoseMessage.from_bytes(_pack(body | {"lost": True}))
+    with pytest.raises(MessageError, match="T_wc"):  # tracked, so the pose must be there
+        PoseMessage.from_bytes(_pack(body | {"T_wc": None}))
+    with pytest.raises(ValueError, match="exactly when"):
+        PoseMessage(7, 2.0, np.eye(4), lost=True)
 
 
 def test_pose_must_be_4x4_float64():

@@ -1,0 +1,115 @@
+"""The direct solver on a textured wall whose map is exact: it recovers poses, brightness
+changes, says when it is lost, and decides keyframes without rendering."""
+
+import dataclasses
+
+import pytest
+import torch
+from walls import textured_wall_image, wall
+
+from dimslam.common.geometry import pose
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.map.render import RenderConfig
+from dimslam.common.optim.window import FrameState, TrackingLost
+from dimslam.tracker.direct import DirectTracker
+from dimslam.tracker.tracker import TrackerConfig
+
+CAM = Camera(160, 120, 125.0, 125.0, 79.5, 59.5)
+RENDER = RenderConfig(n_stratified=32, n_importance=16, importance_rounds=2, far=4.0)
+
+
+def solver(**kw) -> DirectTracker:
+    cfg = dataclasses.replace(TrackerConfig(ref_points=600, references=2), **kw)
+    return DirectTracker(cfg, RENDER, CAM, torch.Generator().manual_seed(0))
+
+
+def keyframe(T: torch.Tensor, index: int = 0) -> FrameState:
+    return FrameState(index, 0.0, textured_wall_image(T, CAM), T, keyframe=True)
+
+
+def error(T: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
+    """Translation (map units) and rotation (rad) between two poses."""
+    d = pose.log_se3(pose.compose(pose.invert(truth), T))
+    return float(d[:3].norm()), float(d[3:].norm())
+
+
+KF = pose.exp_se3(torch.tensor([0.02, -0.01, 0.0, 0.0, 0.01, 0.0]))
+TRUTH = pose.exp_se3(torch.tensor([0.08, 0.03, 0.05, 0.02, -0.03, 0.01]))
+
+
+def test_a_pose_4_cm_and_2_degrees_off_comes_back_to_a_millimetre():
+    t = solver()
+    t.map_changed(wall, [keyframe(KF)], version=1)
+    guess = pose.retract(TRUTH, torch.tensor([0.03, -0.02, 0.015, 0.02, -0.015, 0.01]))
+    frame = FrameState(1, 0.1, textured_wall_image(TRUTH, CAM), guess)
+    assert error(guess, TRUTH)[0] > 0.03
+    result = t.track(wall, [frame], [])
+    dt, dr = error(frame.T_wc, TRUTH)
+    assert dt < 1e-3 and dr < 1e-3, (dt, dr)
+    assert result.window == (0, 1) and 0 < result.stats.iterations <= 20
+    assert result.stats.inliers > 0.9
+
+
+def test_a_change_of_exposure_is_absorbed_by_the_brightness_model():
+    darker = 0.85 * textured_wall_image(TRUTH, CAM) + 0.03
+    for affine in (True, False):
+        t = solver(affine=affine)
+        t.map_changed(wall, [keyframe(KF)], version=1)
+        frame = FrameState(1, 0.1, darker, pose.retract(TRUTH, torch.full((6,), 0.005)))
+        if not affine:  # without the model, most residuals are outliers
+            with pytest.raises(TrackingLost, match="inliers"):
+                t.track(wall, [frame], [])
+            continue
+        t.track(wall, [frame], [])
+        assert max(error(frame.T_wc, TRUTH)) < 3e-3
+        _, offset = t.brightness[0]
+        assert offset < -0.03  # the frame is darker than its reference
+
+
+def test_a_frame_of_something_else_is_lost_and_keeps_its_guess():
+    t = solver()
+    t.map_changed(wall, [keyframe(KF)], version=1)
+    noise = torch.rand(CAM.height, CAM.width, 3, generator=torch.Generator().manual_seed(1))
+    guess = TRUTH.clone()
+    frame = FrameState(1, 0.1, noise, guess)
+    with pytest.raises(TrackingLost, match="residual|inliers"):
+        t.track(wall, [frame], [])
+    assert torch.equal(frame.T_wc, guess)
+    # Facing away from every rendered keyframe: nothing to track against.
+    away = pose.make_pose(pose.exp_so3(torch.tensor([0.0, 3.14, 0.0])), torch.zeros(3))
+    with pytest.raises(TrackingLost, match="overlaps"):
+        t.track(wall, [FrameState(2, 0.2, noise, away)], [])
+
+
+def test_references_are_rendered_per_map_not_per_frame():
+    t = solver()
+    kfs = [keyframe(KF, 0), keyframe(TRUTH, 1)]
+    assert t.map_changed(wall, kfs, version=1) == 2
+    assert t.map_changed(wall, kfs, version=1) == 0  # same map: nothing to render
+    for i in range(3):
+        T = pose.retract(TRUTH, torch.full((6,), 0.002 * i))
+        result = t.track(wall, [FrameState(2 + i, 0.0, textured_wall_image(T, CAM), T)], kfs)
+        assert result.stats.rendered == 0
+    assert t.map_changed(wall, kfs, version=2) == 2  # a new map: the newest render again
+
+
+def test_keyframes_by_flow_and_by_lost_overlap_without_rendering():
+    t = solver()
+    kf = keyframe(torch.eye(4))
+    t.map_changed(wall, [kf], version=1)
+    frame = FrameState(1, 0.0, textured_wall_image(torch.eye(4), CAM), torch.eye(4))
+    t.track(wall, [frame], [kf])
+
+    def at(x: float, z: float = 0.0) -> FrameState:
+        return FrameState(2, 0.0, None, pose.make_pose(torch.eye(3), torch.tensor([x, 0.0, z])))
+
+    # 5 cm sideways at 2 m: ~3 px of flow, most points stay in view -> not a keyframe.
+    assert not t.is_keyframe(wall, at(0.05), kf)
+    # 25 cm: ~16 px of flow -> a keyframe (by flow or lost overlap).
+    assert t.is_keyframe(wall, at(0.25), kf)
+    # Stepping 60 cm closer: points leave the view at the border, little flow at the centre.
+    narrow = dataclasses.replace(t.cfg, keyframe_flow_px=1000.0)
+    t.cfg = narrow
+    assert t.is_keyframe(wall, at(0.0, 0.6), kf)
+    t.cfg = dataclasses.replace(narrow, keyframe_overlap=0.0)
+    assert not t.is_keyframe(wall, at(0.0, 0.6), kf)
