@@ -1,13 +1,19 @@
-"""Speed of the SLAM core per preset: ms per iteration, fps of a short run, memory.
+"""Speed of the SLAM core per preset: ms per tracked frame, ms per mapping iteration, fps of
+a short run, memory.
 
-    python benchmarks/speed.py                                # paper, cpu, tiny on the CPU
+    python benchmarks/speed.py --threads 1                    # paper, cpu, tiny on the CPU
+    python benchmarks/speed.py --presets cpu --dataset ../shared/data/room0 --threads 1
     python benchmarks/speed.py --presets cpu,tiny --json out/speed.json
     python benchmarks/speed.py --device cuda:0 --full-paper --full-init --max-iters 0
 
 Frames are the built-in synthetic scene, rendered in memory at the preset's width (320x240
-where the preset keeps the input size). Step timings: the system is initialized cheaply
-(`--init-iters`; accuracy is not the point), its frames all become keyframes so that keyframes
-can join the windows, and each `Tracker.track` / `Mapper.map` call (at most `--max-iters`
+where the preset keeps the input size); the tracking timing takes `--dataset`'s instead when
+given. Tracking: a map initialized on the first frames (`--track-init-iters`) and held fixed,
+then `--track-frames` frames tracked by the preset's solver, the whole step timed per frame
+(p50, p95), and the first `--adam-frames` of them also by the Adam window tracker from the same
+guess (`track_ms_p50_adam`, `track_speedup` = its p50 over the solver's). Mapping: the system is
+initialized cheaply (`--init-iters`; accuracy is not the point), its frames all become
+keyframes so that keyframes join the windows, and each `Mapper.map` call (at most `--max-iters`
 iterations) is timed and divided by the iterations it ran; medians over `--repeats`. The
 preset's own initialization time is estimated from the per-iteration times. Full run:
 `Slam.add` over `--frames` frames with the preset as it is except for the cheap initialization
@@ -27,6 +33,7 @@ import resource
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import dimslam.common  # noqa: F401  (OMP_WAIT_POLICY must be set before torch loads OpenMP)
@@ -37,12 +44,14 @@ import torch
 
 from dimslam.common.config import PRESETS, SlamConfig, device_for
 from dimslam.common.geometry.camera import Camera
+from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.synth import FPS, SynthScene, default_camera
-from dimslam.common.optim.window import FrameState, TrackingLost, constant_velocity
+from dimslam.common.optim.window import FrameState, TrackingLost
 from dimslam.common.options import apply_overrides
 from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import INIT_START, MapperConfig
+from dimslam.tracker.tracker import Tracker
 
 log = logging.getLogger("speed")
 MB = 2**20
@@ -93,7 +102,7 @@ def _median_ms(samples: list[float]) -> float | None:
 def time_steps(
     cfg: SlamConfig, camera: Camera, images: list[np.ndarray], device: torch.device, repeats: int
 ) -> dict:
-    """Per-iteration times of initialization, tracking and mapping (medians, milliseconds).
+    """Per-iteration times of initialization and mapping (medians, milliseconds).
 
     The initialization frames all become keyframes, so that keyframes can join the windows.
     """
@@ -114,22 +123,6 @@ def time_steps(
     for f in slam.frames:
         f.keyframe = True
     lost: list[str] = []
-    track, track_window = [], 0
-    for rgb in images[cfg.mapper.init_frames : cfg.mapper.init_frames + repeats]:
-        guess = constant_velocity(slam.frames[-1].T_wc, slam.frames[-2].T_wc)
-        slam.frames.append(_state(slam, rgb, guess))
-        _sync(device)
-        start = time.perf_counter()
-        try:
-            local = slam.frames[-cfg.tracker.local_frames :]
-            result = slam.front.tracker.track(slam.back.mapper.field, local, slam.keyframes)
-        except TrackingLost as e:
-            lost.append(f"tracking frame {len(slam.frames) - 1}: {e}")
-            slam.frames.pop()
-            continue
-        _sync(device)
-        track.append((time.perf_counter() - start) / max(1, result.stats.iterations))
-        track_window = len(result.window)
     mapping, map_window = [], 0
     for _ in range(repeats):
         _sync(device)
@@ -145,15 +138,94 @@ def time_steps(
     return {
         "prior_ms_per_iter": 1e3 * prior_s / prior_iters,
         "init_ms_per_iter": 1e3 * init_s,
-        "track_ms_per_iter": _median_ms(track),
-        "track_iters": cfg.tracker.iters,
-        "track_window": track_window,
         "map_ms_per_iter": _median_ms(mapping),
         "map_iters": cfg.mapper.iters,
         "map_window": map_window,
         "map_mb": slam.back.mapper.field.memory_bytes() / MB,
         "lost": lost,
     }
+
+
+def time_tracking(
+    cfg: SlamConfig, camera: Camera, frames: list[Frame], device: torch.device, adam_frames: int
+) -> dict:
+    """Milliseconds per tracked frame, the whole step (`FrontEnd.track`: references or window
+    chosen, solve, keyframe decision), for the preset's solver and, on the same frames from
+    the same guesses, the Adam window tracker as a shadow whose poses are thrown away.
+
+    The map is initialized on the first `init_frames` frames, then held fixed: the mapper's
+    rounds are not part of a tracking step (the service runs them in another process).
+    Medians and 95th percentiles over the frames tracked after initialization.
+    """
+    slam = Slam(cfg, camera, device)
+    frames = iter(frames)
+    for frame in frames:
+        slam.add(frame)
+        if slam.initialized:
+            break
+    else:
+        raise SystemExit("too few frames to initialize the map")
+    front, field = slam.front, slam.back.field
+    shadow = Tracker(
+        replace(cfg.tracker, solver="adam"), cfg.loss, cfg.render, camera, slam.generator
+    )
+    ms, ms_adam, lost = [], [], 0
+    for frame in frames:
+        index = slam.fed
+        slam.fed += 1
+        rgb = torch.from_numpy(frame.rgb).to(device).float() / 255.0
+        guess = front.guess(index)  # what `track` starts from too (no continued map here)
+        window = [
+            replace(f, T_wc=f.T_wc.clone()) for f in front.frames[1 - cfg.tracker.local_frames :]
+        ]
+        keyframes = front.keyframes
+        _sync(device)
+        start = time.perf_counter()
+        state = front.track(field, index, frame.timestamp, rgb)
+        _sync(device)
+        ms.append(1e3 * (time.perf_counter() - start))
+        lost += state is None
+        if len(ms_adam) < adam_frames:
+            window.append(FrameState(index, frame.timestamp, rgb, guess))
+            _sync(device)
+            start = time.perf_counter()
+            try:
+                shadow.track(field, window, keyframes)
+                shadow.is_keyframe(field, window[-1], keyframes[-1])
+            except TrackingLost:
+                pass  # timed all the same: it ran its iterations
+            _sync(device)
+            ms_adam.append(1e3 * (time.perf_counter() - start))
+    if not ms:
+        raise SystemExit("no frame left to track after initialization: raise --track-frames")
+    p50, p50_adam = statistics.median(ms), statistics.median(ms_adam) if ms_adam else None
+    return {
+        "solver": cfg.tracker.solver,
+        "track_frames": len(ms),
+        "track_lost": lost,
+        "track_ms_p50": p50,
+        "track_ms_p95": float(np.percentile(ms, 95)),
+        "track_frames_adam": len(ms_adam),
+        "track_ms_p50_adam": p50_adam,
+        "track_ms_p95_adam": float(np.percentile(ms_adam, 95)) if ms_adam else None,
+        "track_speedup": p50_adam / p50 if p50_adam else None,
+    }
+
+
+def load_frames(
+    cfg: SlamConfig, args: argparse.Namespace, count: int
+) -> tuple[Camera, list[Frame]]:
+    """The first `count` frames of `--dataset` at the preset's width, else of the synthetic
+    scene."""
+    if args.dataset is None:
+        camera, images = render(cfg, count, args.seed)
+        return camera, [to_frame(i, rgb) for i, rgb in enumerate(images)]
+    reader = open_dataset(args.dataset, options=ReaderOptions(end=count, width=cfg.width or None))
+    return reader.camera, list(reader)
+
+
+def to_frame(index: int, rgb: np.ndarray) -> Frame:
+    return Frame(index, index / FPS, (rgb * 255 + 0.5).astype(np.uint8))
 
 
 def full_run(
@@ -165,7 +237,7 @@ def full_run(
         `fps` over every frame fed (initialization included) and `tracked_fps` over the frames
         after initialization; on tracking loss, over the frames fed until then.
     """
-    frames = [Frame(i, i / FPS, (rgb * 255 + 0.5).astype(np.uint8)) for i, rgb in enumerate(images)]
+    frames = [to_frame(i, rgb) for i, rgb in enumerate(images)]
     slam = Slam(cfg, camera, device)
     lost, fed, init_s, init_n = None, 0, None, 0
     start = time.perf_counter()
@@ -229,6 +301,25 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
         + steps["init_ms_per_iter"] * init_iterations(cfg.mapper)
     ) / 1e3
     result = {"preset": name, "size": [camera.width, camera.height], **steps}
+    log.info("%s: timing the tracking step per frame", name)
+    track_cfg = apply_overrides(
+        cfg,
+        {
+            "mapper.init_iters": str(args.track_init_iters),
+            "mapper.prior_iters": str(min(cfg.mapper.prior_iters, args.track_init_iters)),
+            "mapper.init_grow_iters": "0",
+        },
+    )
+    t_camera, t_frames = load_frames(cfg, args, cfg.mapper.init_frames + args.track_frames)
+    result["tracking"] = time_tracking(track_cfg, t_camera, t_frames, device, args.adam_frames)
+    result["tracking"]["source"] = args.dataset or "synthetic"
+    result.update(
+        {
+            k: v
+            for k, v in result["tracking"].items()
+            if k.startswith("track_ms") or k == "track_speedup"
+        }
+    )
     result["init_seconds_estimate"] = estimate
     result["full_run"] = None
     if full:
@@ -260,16 +351,20 @@ def table(results: list[dict]) -> str:
         return "-" if value is None else format(value, fmt)
 
     rows = [
-        "| preset | size | init ms/it | track ms/it | map ms/it | init s (est.) | run fps "
-        "| fps after init | map MB | peak RSS MB | lost |",
-        "|" + "---|" * 11,
+        "| preset | size | track ms/frame p50 / p95 | Adam p50 | speedup | init ms/it "
+        "| map ms/it | init s (est.) | run fps | fps after init | map MB | peak RSS MB | lost |",
+        "|" + "---|" * 13,
     ]
     for r in results:
         run = r["full_run"] or {}
         lost = r["lost"] + ([run["lost"]] if run.get("lost") else [])
+        if r["tracking"]["track_lost"]:
+            lost.append(f"{r['tracking']['track_lost']} frames lost in the tracking timing")
         rows.append(
-            f"| {r['preset']} | {r['size'][0]}x{r['size'][1]} | {num(r['init_ms_per_iter'])} "
-            f"| {num(r['track_ms_per_iter'])} ({r['track_window']}) "
+            f"| {r['preset']} | {r['size'][0]}x{r['size'][1]} "
+            f"| {num(r['track_ms_p50'])} / {num(r['track_ms_p95'])} "
+            f"| {num(r['track_ms_p50_adam'])} | {num(r['track_speedup'], '.0f')}x "
+            f"| {num(r['init_ms_per_iter'])} "
             f"| {num(r['map_ms_per_iter'])} ({r['map_window']}) "
             f"| {num(r['init_seconds_estimate'])} | {num(run.get('fps'), '.2f')} "
             f"| {num(run.get('tracked_fps'), '.2f')} | {r['map_mb']:.1f} "
@@ -312,6 +407,21 @@ def main(argv: list[str] | None = None) -> int:
         help="also do the paper preset's full run on the CPU (slow)",
     )
     parser.add_argument("--seed", type=int, default=0, help="synthetic scene seed")
+    parser.add_argument(
+        "--dataset", help="time the tracking step on this dataset's frames (default: synthetic)"
+    )
+    parser.add_argument(
+        "--track-frames", type=int, default=40, help="frames tracked after initialization"
+    )
+    parser.add_argument(
+        "--adam-frames", type=int, default=10, help="of those, how many the Adam shadow tracks"
+    )
+    parser.add_argument(
+        "--track-init-iters",
+        type=int,
+        default=200,
+        help="initialization iterations of the map the tracking timing tracks against",
+    )
     parser.add_argument("--json", type=Path, help="write the JSON here instead of stdout")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
@@ -319,8 +429,10 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in names if p not in PRESETS]
     if unknown:
         parser.error(f"unknown presets {unknown}; known: {', '.join(PRESETS)}")
-    if min(args.repeats, args.init_iters) < 1 or args.frames < 3:
-        parser.error("need --repeats >= 1, --init-iters >= 1 and --frames >= 3")
+    if min(args.repeats, args.init_iters, args.track_frames, args.track_init_iters) < 1:
+        parser.error("need --repeats, --init-iters, --track-frames, --track-init-iters >= 1")
+    if args.frames < 3 or args.adam_frames < 0:
+        parser.error("need --frames >= 3 and --adam-frames >= 0")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = device_for(args.device)

@@ -73,6 +73,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, defaults: Any, title: 
         metavar = getattr(kind, "__name__", "VALUE").upper()
         if typing.get_origin(kind) is tuple:
             metavar = "A,B,..."
+        elif typing.get_origin(kind) is typing.Literal:
+            metavar = "{" + ",".join(map(str, typing.get_args(kind))) + "}"
         group.add_argument(
             f"--{name}",
             dest=f"cfg:{name}",

@@ -13,8 +13,9 @@ observed (DSO's coarse tracker, with the map in place of DSO's keyframe depth):
   affine brightness `I_frame = a * I_keyframe + b` (real cameras change exposure), with
   analytic Jacobians (the frame's image gradient times the projection's), Huber weights, coarse
   to fine over a pyramid of the frame's grey image, and an early stop once the step is small.
-- The solve fails (`TrackingLost`) when too few points stay in view, when the robust residual
-  stays high, or when anything turns non-finite; the front end then relocalizes.
+- The solve fails (`TrackingLost`) when the frame has too little texture to align, when too
+  few points stay in view, when the robust residual stays high or few points fit, or when
+  anything turns non-finite; the front end then relocalizes.
 
 Whether a frame becomes a keyframe is decided on the same points: their reprojection flow
 between the last keyframe and the frame, and how many of those the last keyframe sees stay in
@@ -24,6 +25,7 @@ view. Nothing is rendered per frame.
 from __future__ import annotations
 
 import math
+import statistics
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +57,18 @@ PRIOR_BRIGHTNESS = np.array([1.0, 0.0])
 less than that. Unbounded, a misaligned solve can lower the gain towards 0, which flattens the
 residuals of any pose: on room0's frame 111 (oracle map, prior 1e-4) the gain fell to 0.1 and
 the pose slid 40 cm along a textured wall."""
+MIN_TEXTURE = 0.25
+"""A frame whose mean image gradient is below this share of its keyframes' has nothing to
+align (a covered lens, a dark or heavily blurred frame): it is lost without a solve, which
+would otherwise settle wherever the brightness model flattens the residuals best."""
+RELOC_STEP = 0.05
+"""The relocalization search's step along a camera axis, as a share of the scene's depth."""
+RELOC_TURN = math.radians(5.0)
+"""The relocalization search's turn about a camera axis."""
+RELOC_COARSE_ITERS = 3
+"""Iterations each move of the relocalization search gets on the coarsest level."""
+RELOC_SOLVES = 3
+"""Full solves from the best moves of the search."""
 MARGIN = 2.0
 """Points closer than this (level pixels) to the border are out of view: their gradient is
 one-sided there."""
@@ -69,12 +83,14 @@ class Reference:
         p_k: `(N, 3)` points in the keyframe's camera frame.
         intensity: per pyramid level, `(N,)` the keyframe's grey value at each point.
         version: the map version the depth was rendered from.
+        texture: the keyframe image's mean absolute gradient (`texture`).
     """
 
     keyframe: FrameState
     p_k: torch.Tensor
     intensity: list[torch.Tensor]
     version: int
+    texture: float
 
     def world(self) -> torch.Tensor:
         """`(N, 3)` the points in the world at the keyframe's current pose."""
@@ -114,6 +130,11 @@ def with_gradients(image: torch.Tensor) -> torch.Tensor:
     gu = 0.5 * (padded[1:-1, 2:] - padded[1:-1, :-2])
     gv = 0.5 * (padded[2:, 1:-1] - padded[:-2, 1:-1])
     return torch.stack([image, gu, gv], dim=-1)
+
+
+def texture(image: torch.Tensor) -> float:
+    """Mean absolute gradient of a `with_gradients` image: how much there is to align."""
+    return float(image[..., 1:].abs().mean())
 
 
 def level_uv(uv: torch.Tensor, level: int) -> torch.Tensor:
@@ -181,7 +202,13 @@ class DirectTracker:
             losses.sample_images(img[..., None].expand(-1, -1, 3), level_uv(uv, lv))[:, 0]
             for lv, img in enumerate(images)
         ]
-        ref = Reference(kf, self.camera.unproject(uv, depth), intensity, self.version)
+        ref = Reference(
+            kf,
+            self.camera.unproject(uv, depth),
+            intensity,
+            self.version,
+            texture(with_gradients(images[0])),
+        )
         self.references[kf.index] = ref
         return ref
 
@@ -233,53 +260,138 @@ class DirectTracker:
                 residual stays high, or the solve turns non-finite; the frame keeps its guess.
         """
         frame = local[-1]
-        assert frame.rgb is not None
         refs, rendered = self.choose(field, keyframes, frame.T_wc)
         if not refs:
             raise TrackingLost(f"frame {frame.index}: no rendered keyframe overlaps its view")
-        stats = self.solve(frame, refs)
-        stats.rendered = rendered
-        return TrackResult(frame.index, frame.T_wc, stats, (*stats.references, frame.index))
+        solved = self.solve(frame, refs, self.images(frame))
+        solved.stats.rendered = rendered
+        return self._accept(frame, solved)
 
-    def solve(self, frame: FrameState, refs: list[Reference]) -> DirectStats:
-        """Levenberg-Marquardt from `frame.T_wc` against `refs`, coarse to fine."""
+    def relocalize(
+        self,
+        field: FieldFn,
+        local: list[FrameState],
+        keyframes: list[FrameState],
+        starts: list[torch.Tensor],
+        max_residual: float,
+    ) -> TrackResult:
+        """Place `local[-1]` after a loss: a coarse search around each start, then full solves
+        from the `RELOC_SOLVES` best, and the solution with the lowest residual if it is at
+        most `max_residual`.
+
+        The coarse search tries each start and `RELOC_STEPS` shifts of it (along the camera
+        axes, by a share of the scene's depth, and turns about them), each for a few
+        iterations on the coarsest level only, where a solve is cheapest and its basin widest.
+
+        Raises:
+            TrackingLost: no start leads to a solution that good.
+        """
+        frame = local[-1]
+        images = self.images(frame)
+        level = len(images) - 1
+        coarse: list[tuple[float, np.ndarray, list[Reference]]] = []
+        for start in starts:
+            refs, _ = self.choose(field, keyframes, start)
+            if not refs:
+                continue
+            problem = self._problem(images, refs, self._points(refs), level)
+            depth = float(torch.cat([r.p_k[:, 2] for r in refs]).median())
+            ab = self._brightness(refs)
+            for shift in _shifts(depth):
+                T_cw = shift @ np.linalg.inv(start.double().cpu().numpy())
+                T_cw, _, _, cost = problem.minimize(T_cw, ab, RELOC_COARSE_ITERS)
+                coarse.append((cost, T_cw, refs))
+        coarse.sort(key=lambda c: c[0])
+        best: _Solved | None = None
+        error = f"frame {frame.index}: no rendered keyframe overlaps any start"
+        for _, T_cw, refs in coarse[:RELOC_SOLVES]:
+            frame.T_wc = _to_tensor(np.linalg.inv(T_cw), frame.T_wc)
+            try:
+                solved = self.solve(frame, refs, images)
+            except TrackingLost as e:
+                error = str(e)
+                continue
+            if best is None or solved.stats.residual < best.stats.residual:
+                best = solved
+        if best is None:
+            raise TrackingLost(error)
+        if best.stats.residual > max_residual:
+            raise TrackingLost(
+                f"frame {frame.index}: best residual {best.stats.residual:.3f} > "
+                f"{max_residual:.3f} of the frames tracked before"
+            )
+        return self._accept(frame, best)
+
+    def images(self, frame: FrameState) -> list[torch.Tensor]:
+        """The frame's grey pyramid with the gradients, finest first."""
         assert frame.rgb is not None
-        images = [with_gradients(img) for img in pyramid(grey(frame.rgb), len(self.cameras))]
-        # One random order for all levels: the coarse levels use its first points.
+        return [with_gradients(img) for img in pyramid(grey(frame.rgb), len(self.cameras))]
+
+    def _brightness(self, refs: list[Reference]) -> np.ndarray:
+        """`(R, 2)` the last gain and offset of each reference against the frames."""
+        return np.array([self.brightness.get(r.keyframe.index, (1.0, 0.0)) for r in refs])
+
+    def _points(self, refs: list[Reference]) -> _Points:
+        """The references' points in one random order (the coarse levels use its first)."""
         order = torch.randperm(sum(len(r.p_k) for r in refs), generator=self.generator)
-        p_w = torch.cat([r.world() for r in refs])[order]
         ref_of = torch.cat(
             [torch.full((len(r.p_k),), k, dtype=torch.long) for k, r in enumerate(refs)]
-        )[order]
+        )
         # The brightness model works on intensities about each reference's mean, so that the
         # gain scales contrast only and the offset carries the shift of the mean.
-        mean = torch.cat([r.intensity[0].mean().expand(len(r.p_k)) for r in refs])[order]
-        ab = np.array([self.brightness.get(r.keyframe.index, (1.0, 0.0)) for r in refs])
+        mean = torch.cat([r.intensity[0].mean().expand(len(r.p_k)) for r in refs])
+        p_w = torch.cat([r.world() for r in refs])
+        return _Points(order, p_w[order], ref_of[order], mean[order])
+
+    def _problem(
+        self, images: list[torch.Tensor], refs: list[Reference], pts: _Points, level: int
+    ) -> _Problem:
+        """The solve's problem at one pyramid level: the finest takes every point, each
+        coarser one a quarter of those of the level below, at least 300."""
+        total = len(pts.p_w)
+        n = total if level == 0 else min(total, max(300, total >> (2 * level)))
+        centred = torch.cat([r.intensity[level] for r in refs])[pts.order] - pts.mean
+        return _Problem(
+            images[level],
+            self.cameras[level],
+            pts.p_w[:n],
+            centred[:n],
+            pts.mean[:n],
+            pts.ref_of[:n],
+            len(refs),
+            self.cfg,
+        )
+
+    def solve(
+        self, frame: FrameState, refs: list[Reference], images: list[torch.Tensor]
+    ) -> _Solved:
+        """Levenberg-Marquardt from `frame.T_wc` against `refs`, coarse to fine; checked but
+        not yet applied (`_accept`).
+
+        Raises:
+            TrackingLost: the solution is non-finite, sees too few points, jumped too far
+                from the start, or leaves the residual high.
+        """
+        seen = texture(images[0]) / max(statistics.fmean(r.texture for r in refs), 1e-12)
+        if seen < MIN_TEXTURE:
+            raise TrackingLost(
+                f"frame {frame.index}: {seen:.0%} of the keyframes' texture (covered, blurred "
+                "or dark)"
+            )
+        pts = self._points(refs)
+        ab = self._brightness(refs)
         T_cw = np.linalg.inv(frame.T_wc.double().cpu().numpy())
-        stats = DirectStats(references=tuple(r.keyframe.index for r in refs), points=len(p_w))
+        stats = DirectStats(references=tuple(r.keyframe.index for r in refs), points=len(pts.p_w))
         budget = self.cfg.iters
         finest = None
         for level in reversed(range(len(images))):
-            # Coarse levels need fewer points: a quarter per level, at least 300.
-            n = len(p_w) if level == 0 else min(len(p_w), max(300, len(p_w) >> (2 * level)))
-            centred = torch.cat([r.intensity[level] for r in refs])[order] - mean
-            problem = _Problem(
-                images[level],
-                self.cameras[level],
-                p_w[:n],
-                centred[:n],
-                mean[:n],
-                ref_of[:n],
-                len(refs),
-                self.cfg,
-            )
+            finest = self._problem(images, refs, pts, level)
             # A fair share of the iterations left; what a level leaves unused passes on.
-            T_cw, ab, used, cost = problem.minimize(T_cw, ab, max(1, budget // (level + 1)))
+            T_cw, ab, used, cost = finest.minimize(T_cw, ab, max(1, budget // (level + 1)))
             budget -= used
             stats.per_level.append(used)
             stats.iterations += used
             stats.history.append(cost)
-            finest = problem
         assert finest is not None
         check = finest.evaluate(T_cw, ab)
         n_valid = int(check.valid.sum())
@@ -290,10 +402,10 @@ class DirectTracker:
         stats.inliers = inliers
         if not (np.isfinite(T_cw).all() and math.isfinite(residual)):
             raise TrackingLost(f"frame {frame.index}: the solve became non-finite")
-        T_wc = pose.normalize(torch.from_numpy(np.linalg.inv(T_cw)).float().to(frame.T_wc.device))
+        T_wc = _to_tensor(np.linalg.inv(T_cw), frame.T_wc)
         if n_valid < MIN_POINTS:
             raise TrackingLost(f"frame {frame.index}: {n_valid} points in view")
-        jump = self._flow(p_w, pose.invert(frame.T_wc), pose.invert(T_wc))
+        jump = self._flow(pts.p_w, pose.invert(frame.T_wc), pose.invert(T_wc))
         if jump > self.cfg.max_jump_px:
             raise TrackingLost(
                 f"frame {frame.index}: the solve moved the view {jump:.0f} px from its guess"
@@ -302,11 +414,16 @@ class DirectTracker:
             raise TrackingLost(
                 f"frame {frame.index}: residual {residual:.3f}, {inliers:.0%} inliers"
             )
-        frame.T_wc = T_wc
-        for k, r in enumerate(refs):
-            self.brightness[r.keyframe.index] = (float(ab[k, 0]), float(ab[k, 1]))
-        self.last_points = p_w
-        return stats
+        return _Solved(T_wc, ab, stats, refs, pts.p_w)
+
+    def _accept(self, frame: FrameState, solved: _Solved) -> TrackResult:
+        """Give the frame its solved pose; keep the brightness and points for the next."""
+        frame.T_wc = solved.T_wc
+        for k, r in enumerate(solved.refs):
+            self.brightness[r.keyframe.index] = (float(solved.ab[k, 0]), float(solved.ab[k, 1]))
+        self.last_points = solved.p_w
+        stats = solved.stats
+        return TrackResult(frame.index, frame.T_wc, stats, (*stats.references, frame.index))
 
     def _flow(self, p_w: torch.Tensor, T_a: torch.Tensor, T_b: torch.Tensor) -> float:
         """Mean displacement (pixels) of the points in view between cameras `T_a`, `T_b` (cw)."""
@@ -339,6 +456,48 @@ class DirectTracker:
         both = in_k & in_f
         flow = (uv_f[both] - uv_k[both]).norm(dim=-1).mean()
         return float(flow) > self.cfg.keyframe_flow_px
+
+
+@dataclass
+class _Points:
+    """The points of a solve's references, in one random order."""
+
+    order: torch.Tensor
+    p_w: torch.Tensor
+    ref_of: torch.Tensor  # which reference each point is of
+    mean: torch.Tensor  # its reference's mean intensity
+
+
+@dataclass
+class _Solved:
+    """A checked solution, not yet applied."""
+
+    T_wc: torch.Tensor
+    ab: np.ndarray
+    stats: DirectStats
+    refs: list[Reference]
+    p_w: torch.Tensor
+
+
+def _to_tensor(T_wc: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    return pose.normalize(torch.from_numpy(T_wc).float().to(like.device))
+
+
+def _shifts(depth: float) -> list[np.ndarray]:
+    """The relocalization search's moves of a start (left-multiplied onto `T_cw`): none,
+    `RELOC_STEP` and twice that of the scene depth along each camera axis, and
+    `RELOC_TURN` about each axis."""
+    moves = [np.eye(4)]
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            for k in (1.0, 2.0):
+                xi = np.zeros(6)
+                xi[axis] = sign * k * RELOC_STEP * depth
+                moves.append(se3_exp(xi))
+            xi = np.zeros(6)
+            xi[3 + axis] = sign * RELOC_TURN
+            moves.append(se3_exp(xi))
+    return moves
 
 
 @dataclass

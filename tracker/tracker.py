@@ -32,6 +32,7 @@ from dimslam.common.optim import losses
 from dimslam.common.optim.objective import LossConfig, WindowLoss, patch_colors
 from dimslam.common.optim.window import (
     FrameState,
+    TrackingLost,
     WindowStats,
     minimize,
     overlapping_keyframes,
@@ -72,7 +73,9 @@ class TrackerConfig:
         "guess has locked onto something else: the frame counts as lost.",
     )
     reloc_candidates: int = option(
-        6, "Poses tried when relocalizing: the last good one and the nearest keyframes'."
+        6,
+        "Starts of the search for a lost frame: its guess, the last motion over the gap, "
+        "the nearest keyframes' poses.",
     )
     pixels: int = option(3000, "adam: high-gradient pixels per tracking step.")
     pose_lr: float = option(1e-2, "adam: learning rate of the pose increments.")
@@ -146,6 +149,35 @@ class Tracker:
             window, movable, objective, self.cfg.iters, self.cfg.pose_lr, max_loss=self.cfg.max_loss
         )
         return TrackResult(newest.index, newest.T_wc, stats, tuple(f.index for f in window))
+
+    def relocalize(
+        self,
+        field: FieldFn,
+        local: list[FrameState],
+        keyframes: list[FrameState],
+        starts: list[torch.Tensor],
+        max_residual: float,
+    ) -> TrackResult:
+        """Place `local[-1]` after a loss: `track` from each start in turn; the first whose
+        loss is at most `max_residual` wins.
+
+        Raises:
+            TrackingLost: no start does.
+        """
+        error = TrackingLost(f"frame {local[-1].index}: no start to relocalize from")
+        for start in starts:
+            local[-1].T_wc = start.clone()
+            try:
+                result = self.track(field, local, keyframes)
+            except TrackingLost as e:
+                error = e
+                continue
+            if result.stats.loss <= max_residual:
+                return result
+            error = TrackingLost(
+                f"frame {local[-1].index}: loss {result.stats.loss:.3f} > {max_residual:.3f}"
+            )
+        raise error
 
     def _objective(self, field: FieldFn, window: list[FrameState], movable: list[bool]):
         """The warping terms from the fixed frames of `window` into its moving frames.

@@ -4,7 +4,8 @@ A plain peer of the service (transport.py): `with open_session(...)` so nothing 
 SIGINT/SIGTERM set one stop event, user errors print one line and exit 2 (entry.run_main).
 
 The camera sends each frame, in order, once three gates let it through:
-1. lockstep (optional): fewer than `--ahead` frames beyond the last pose the tracker published;
+1. lockstep (optional; a dataset or video replayed `--live` until the map is initialized):
+   fewer than `--ahead` frames beyond the last pose the tracker published;
 2. pacing: the recorded rate (timestamp differences), `--rate`, or none; after a stall
    (lockstep, slow decoding) the schedule restarts instead of bursting to catch up;
 3. the publisher: BLOCK for datasets and videos, so every frame arrives; DROP for a live
@@ -92,7 +93,8 @@ def _camera_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="replay a dataset or video as a live camera would send it: at its rate, frames "
         "marked live and sent with DROP congestion control, so a busy tracker keeps only the "
-        "newest (a live camera index always is)",
+        "newest (a live camera index always is); the first frames go in lockstep until the "
+        "map is initialized, as a user holds a live camera still until then",
     )
     g.add_argument(
         "--lockstep",
@@ -104,7 +106,8 @@ def _camera_options(p: argparse.ArgumentParser) -> None:
         type=positive_int,
         default=DEFAULT_AHEAD,
         metavar="K",
-        help=f"with --lockstep, frames sent beyond the last pose (default: {DEFAULT_AHEAD}); "
+        help=f"with --lockstep (or --live until the map exists), frames sent beyond the last "
+        f"pose (default: {DEFAULT_AHEAD}); "
         "must exceed the tracker's initialization frames (13 for the paper and cpu presets), "
         "since no pose is published before the map is initialized",
     )
@@ -237,8 +240,12 @@ def _stream(
         total = args.max_frames if total is None else min(total, args.max_frames)
     bar = Progress(total, "sent")
     sent = 0
+    # A replayed stream starts its live clock once the map exists: until the tracker's first
+    # pose it goes in lockstep, as a user holds a live camera until the system is initialized.
+    replayed = live and not device
     for frame in reader:
-        if stop or (args.lockstep and not mark.wait_until(sent, args.ahead, stop)):
+        gated = args.lockstep or (replayed and mark.highest < 0)
+        if stop or (gated and not mark.wait_until(sent, args.ahead, stop)):
             break
         if stop.event.wait(pacer.delay(frame.timestamp)):
             break

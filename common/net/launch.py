@@ -76,8 +76,9 @@ def run_service(
     """Run the service on a dataset and write the outputs of `run_dataset` plus the online ones.
 
     With `realtime` (frames per second) the camera replays the dataset as a live camera would,
-    at that rate, without lockstep, and the tracker never waits for the map: frames it cannot
-    keep up with are dropped, and the figures say how many and how late the poses came.
+    at that rate once the map is initialized, without lockstep, and the tracker never waits
+    for the map: frames it cannot keep up with are dropped, and the figures say how many and
+    how late the poses came.
 
     Raises:
         DimslamError: a process failed (its log is named) or the dataset cannot be read.
@@ -93,10 +94,11 @@ def run_service(
         compute += ["--gpu", str(device.index or 0)]
     settings = ["--preset", "paper", *_settings_args(cfg)]
     both = ["--connect", tracker_ep, "--connect", mapper_ep]
-    # Offline: in lockstep with the tracker, as fast as it goes; live: at the rate, never held.
-    pacing = (
-        ["--lockstep", "--rate", "0"] if realtime is None else ["--live", "--rate", str(realtime)]
-    )
+    # Offline: in lockstep with the tracker, as fast as it goes; live: at the rate, held only
+    # until the map is initialized (no frame beyond the initialization's sent before that).
+    pacing = ["--lockstep", "--rate", "0"]
+    if realtime is not None:
+        pacing = ["--live", "--rate", str(realtime), "--ahead", str(cfg.mapper.init_frames)]
     commands = {
         "mapper": [
             "dimslam.mapper.cli",

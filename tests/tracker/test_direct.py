@@ -81,6 +81,35 @@ def test_a_frame_of_something_else_is_lost_and_keeps_its_guess():
         t.track(wall, [FrameState(2, 0.2, noise, away)], [])
 
 
+def test_a_blank_frame_is_lost_for_want_of_texture():
+    t = solver()
+    t.map_changed(wall, [keyframe(KF)], version=1)
+    covered = torch.full((CAM.height, CAM.width, 3), 0.02)
+    with pytest.raises(TrackingLost, match="texture"):
+        t.track(wall, [FrameState(1, 0.1, covered, TRUTH.clone())], [])
+
+
+def test_relocalization_searches_around_its_starts_and_keeps_the_best():
+    t = solver()
+    kf = keyframe(KF)
+    t.map_changed(wall, [kf], version=1)
+    image = textured_wall_image(TRUTH, CAM)
+    # 8 cm and 5 degrees off: one solve from there settles 30 cm away.
+    far = pose.retract(TRUTH, torch.tensor([0.06, 0.0, 0.05, 0.0, 0.08, 0.0]))
+    frame = FrameState(1, 0.1, image, far.clone())
+    t.track(wall, [frame], [kf])
+    assert error(frame.T_wc, TRUTH)[0] > 0.1
+    frame.T_wc = far.clone()
+    result = t.relocalize(wall, [frame], [kf], [far, KF], max_residual=0.05)
+    dt, dr = error(frame.T_wc, TRUTH)
+    assert dt < 2e-3 and dr < 2e-3, (dt, dr)
+    assert result.stats.residual < 0.05
+    # A residual above what the frames before had is not a relocalization.
+    frame.T_wc = far.clone()
+    with pytest.raises(TrackingLost, match="residual"):
+        t.relocalize(wall, [frame], [kf], [far, KF], max_residual=result.stats.residual / 2)
+
+
 def test_references_are_rendered_per_map_not_per_frame():
     t = solver()
     kfs = [keyframe(KF, 0), keyframe(TRUTH, 1)]

@@ -47,13 +47,15 @@ def test_a_batch_is_due_every_few_frames():
     assert f.batch_due()
 
 
-def test_guess_repeats_the_motion_but_not_across_a_gap():
+def test_guess_carries_the_motion_on_but_not_across_a_long_gap():
     f = front()
     f.frames = [FrameState(0, 0.0, None, moved(0.0)), FrameState(1, 0.0, None, moved(0.1))]
     assert torch.allclose(f.guess(2), moved(0.2), atol=1e-6)
     assert torch.allclose(f.guess(4), moved(0.4), atol=1e-6)  # 2 frames dropped in between
     assert torch.allclose(f.guess(9), moved(0.1))  # a long gap: no velocity over it
-    f.frames[-1].index = 5  # the last two frames are not neighbours: no velocity either
+    f.frames[-1].index = 2  # a frame dropped between the last two: 0.05 per frame
+    assert torch.allclose(f.guess(4), moved(0.2), atol=1e-6)
+    f.frames[-1].index = 5  # the last two frames too far apart: no velocity
     assert torch.allclose(f.guess(6), moved(0.1))
     f.next_guess = moved(1.0)  # a continued map's last pose wins, once
     assert torch.allclose(f.guess(6), moved(1.0))
