@@ -8,7 +8,8 @@ a short run, memory.
 
 Frames are the built-in synthetic scene, rendered in memory at the preset's width (320x240
 where the preset keeps the input size); the tracking timing takes `--dataset`'s instead when
-given. Tracking: a map initialized on the first frames (`--track-init-iters`) and held fixed,
+given. Tracking: a map initialized on the first frames (the preset's initialization, or
+`--track-init-iters`) and held fixed,
 then `--track-frames` frames tracked by the preset's solver, the whole step timed per frame
 (p50, p95), and the first `--adam-frames` of them also by the Adam window tracker from the same
 guess (`track_ms_p50_adam`, `track_speedup` = its p50 over the solver's). Mapping: the system is
@@ -302,14 +303,18 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
     ) / 1e3
     result = {"preset": name, "size": [camera.width, camera.height], **steps}
     log.info("%s: timing the tracking step per frame", name)
-    track_cfg = apply_overrides(
-        cfg,
-        {
-            "mapper.init_iters": str(args.track_init_iters),
-            "mapper.prior_iters": str(min(cfg.mapper.prior_iters, args.track_init_iters)),
-            "mapper.init_grow_iters": "0",
-        },
-    )
+    track_cfg = cfg
+    if args.track_init_iters is not None:
+        track_cfg = apply_overrides(
+            cfg,
+            {
+                "mapper.init_iters": str(args.track_init_iters),
+                "mapper.init_grow_iters": str(
+                    min(cfg.mapper.init_grow_iters, args.track_init_iters)
+                ),
+                "mapper.prior_iters": str(min(cfg.mapper.prior_iters, args.track_init_iters)),
+            },
+        )
     t_camera, t_frames = load_frames(cfg, args, cfg.mapper.init_frames + args.track_frames)
     result["tracking"] = time_tracking(track_cfg, t_camera, t_frames, device, args.adam_frames)
     result["tracking"]["source"] = args.dataset or "synthetic"
@@ -419,8 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--track-init-iters",
         type=int,
-        default=200,
-        help="initialization iterations of the map the tracking timing tracks against",
+        help="initialization iterations (and at most as many per joining frame and for the "
+        "prior) of the map the tracking timing tracks against (default: the preset's)",
     )
     parser.add_argument("--json", type=Path, help="write the JSON here instead of stdout")
     args = parser.parse_args(argv)
@@ -429,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in names if p not in PRESETS]
     if unknown:
         parser.error(f"unknown presets {unknown}; known: {', '.join(PRESETS)}")
-    if min(args.repeats, args.init_iters, args.track_frames, args.track_init_iters) < 1:
+    if min(args.repeats, args.init_iters, args.track_frames, args.track_init_iters or 1) < 1:
         parser.error("need --repeats, --init-iters, --track-frames, --track-init-iters >= 1")
     if args.frames < 3 or args.adam_frames < 0:
         parser.error("need --frames >= 3 and --adam-frames >= 0")

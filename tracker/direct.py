@@ -237,7 +237,8 @@ class DirectTracker:
         if newest is not None and newest.index not in self.references and newest.rgb is not None:
             self.render(field, newest)
             rendered = 1
-        refs = list(self.references.values())
+        # A keyframe where the map has no surface yet has too few points to count.
+        refs = [r for r in self.references.values() if len(r.p_k) >= MIN_POINTS]
         scored = list(zip(self._overlaps(refs, T_cw), refs, strict=True))
         first = [(s, r) for s, r in scored if newest is not None and r.keyframe is newest]
         others = sorted(
