@@ -236,22 +236,20 @@ def full_run(
 
     Returns:
         `fps` over every frame fed (initialization included) and `tracked_fps` over the frames
-        after initialization; on tracking loss, over the frames fed until then.
+        after initialization (lost ones included).
     """
     frames = [to_frame(i, rgb) for i, rgb in enumerate(images)]
     slam = Slam(cfg, camera, device)
-    lost, fed, init_s, init_n = None, 0, None, 0
+    fed, init_s, init_n = 0, None, 0
     start = time.perf_counter()
-    try:
-        for frame in frames:
-            fed += 1
-            slam.add(frame)
-            if init_s is None and slam.initialized:
-                init_s = time.perf_counter() - start
-                init_n = fed
-        slam.finish()
-    except TrackingLost as e:
-        lost = f"frame {fed - 1}: {e}"
+    for frame in frames:
+        fed += 1
+        slam.add(frame)
+        if init_s is None and slam.initialized:
+            init_s = time.perf_counter() - start
+            init_n = fed
+    slam.finish()
+    lost = f"{len(slam.lost_frames)} frames lost in the full run" if slam.lost_frames else None
     _sync(device)
     seconds = time.perf_counter() - start
     tracked = None

@@ -249,7 +249,9 @@ def _stream(
             break
         if stop.event.wait(pacer.delay(frame.timestamp)):
             break
-        pub.put(FrameMessage(sent, frame.timestamp, frame.rgb, camera, live=live).to_bytes())
+        # Held frames are not live: the tracker must not skip one of its initialization's.
+        message = FrameMessage(sent, frame.timestamp, frame.rgb, camera, live=live and not gated)
+        pub.put(message.to_bytes())
         sent += 1
         bar.update(sent, tracked=mark.highest + 1)
         if sent == args.max_frames:
