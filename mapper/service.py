@@ -64,8 +64,10 @@ MAX_BACKLOG = 2
 """Batches that may wait and still be mapped one round each. A tracker at `--map-lag 1` can
 have two waiting at the end of a round (it tracks fast, the mapper reads its inbox a moment
 later); more means the mapper has fallen behind a live stream."""
-STOP_GRACE_S = 2.0
-"""At a stop, how long the mapper waits for the tracker's last batch and end of stream."""
+STOP_GRACE_S = 10.0
+"""At a stop, how long the mapper waits for the tracker's last batch and end of stream (it
+stops waiting as soon as the end arrives; on a loaded 2-core machine the tracker's flush took
+more than 2 s)."""
 
 
 class MapperService:

@@ -57,6 +57,10 @@ POSES_DESCRIPTION = (
 )
 
 
+END_GRACE_S = 1.0
+"""How long the client still takes refinements after the end of stream."""
+
+
 def _poses_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out",
@@ -132,41 +136,55 @@ def _receive(
     stop: Stop,
     latest: dict[int, PoseMessage],
 ) -> int:
-    """Print poses until the end of stream, `--count`, a stop (0) or `--timeout` (1)."""
+    """Print poses until the end of stream, `--count`, a stop (0) or `--timeout` (1).
+
+    After the end, refinements still on their way on the keyframes topic (sent before the end,
+    but zenoh orders per topic only) are taken for `END_GRACE_S` more."""
     rejects = Rejects()
     tracked = 0
     ended = False
     last = time.monotonic()
+
+    def take(topic: str, payload: bytes) -> None:
+        nonlocal ended, last, tracked
+        try:
+            msg = _decode(payload)
+        except MessageError as e:
+            rejects(topic, e)
+            return
+        if isinstance(msg, EndOfStream):
+            if topic == keys.poses:
+                log.info("end of stream: %d frames, %d poses received", msg.frames, tracked)
+                ended = True
+            return
+        last = time.monotonic()
+        # Refinements and tracked poses race on two topics: the newer map decides, not the
+        # order of arrival; for one map the last pose received wins.
+        kept = latest.get(msg.seq)
+        if not msg.lost and (kept is None or msg.map_version >= kept.map_version):
+            latest[msg.seq] = msg
+        _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)
+        if topic == keys.poses:
+            tracked += 1
+
     while not (stop or ended):
         payload = inbox.get(TICK_S)
         batch = [] if payload is None else [(keys.poses, payload)]
         # Refinements that came with the end still belong to the run: the batch is finished.
         batch += [(keys.keyframes, p) for p in refined.drain()]
         for topic, payload in batch:
-            try:
-                msg = _decode(payload)
-            except MessageError as e:
-                rejects(topic, e)
-                continue
-            if isinstance(msg, EndOfStream):
-                if topic == keys.poses:
-                    log.info("end of stream: %d frames, %d poses received", msg.frames, tracked)
-                    ended = True
-                continue
-            last = time.monotonic()
-            # Refinements and tracked poses race on two topics: the newer map decides, not the
-            # order of arrival; for one map the last pose received wins.
-            kept = latest.get(msg.seq)
-            if not msg.lost and (kept is None or msg.map_version >= kept.map_version):
-                latest[msg.seq] = msg
-            _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)
-            if topic == keys.poses:
-                tracked += 1
+            take(topic, payload)
             if args.count is not None and tracked >= args.count:
                 return 0
         if not ended and args.timeout is not None and time.monotonic() - last > args.timeout:
             log.error("no pose for %g s; giving up after %d poses", args.timeout, tracked)
             return 1
+    if ended and args.keyframes:
+        deadline = time.monotonic() + END_GRACE_S
+        while not stop and (left := deadline - time.monotonic()) > 0:
+            payload = refined.get(min(left, TICK_S))
+            if payload is not None:
+                take(keys.keyframes, payload)
     return 0
 
 
