@@ -18,8 +18,7 @@ import numpy as np
 import pytest
 
 from dimslam.common.cli import main
-from dimslam.common.eval.evaluation import evaluate_trajectory
-from dimslam.common.io.trajectory import Trajectory, read_tum
+from dimslam.common.io.trajectory import read_tum
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import PoseMessage, message_type
 from dimslam.common.net.transport import Inbox, Keys, Presence, TransportConfig, open_session
@@ -262,14 +261,12 @@ def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):
     half = FRAMES // 2
     with Service(tmp_path, "late") as svc:
         svc.start("mapper")
-        # Within one round of the map, as `dimslam run` does: a free tracker outruns a mapper
-        # slowed by a loaded machine and tracks the whole half on the first map.
-        first = svc.start("tracker", "--map-lag", "1")
+        first = svc.start("tracker")
         assert svc.presence.wait_for("tracker", 60) and svc.presence.wait_for("mapper", 60)
         svc.start("camera", str(sequence), "--end", str(half))
         before = _poses_until_end(svc.poses)
         assert first.wait(60) == 0
-        late = svc.start("tracker", "--map-lag", "1")
+        late = svc.start("tracker")
         assert svc.presence.wait_for("tracker", 60)
         svc.start("camera", str(sequence), "--start", str(half))
         after = _poses_until_end(svc.poses)
@@ -277,13 +274,12 @@ def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):
     assert "this tracker continues it" in svc.log("tracker")
     assert set(before) == set(range(half)) and set(after) == set(range(FRAMES - half))
     # One trajectory in one map frame: a tracker that started a new map instead would restart
-    # at the identity, tens of centimetres off the aligned path.
-    est = Trajectory(
-        np.array([m.timestamp for m in [*before.values(), *after.values()]]),
-        np.stack([m.T_wc for m in [*before.values(), *after.values()]]),
-    )
-    gt = read_tum(sequence / "groundtruth.txt")
-    assert evaluate_trajectory(est, gt).ate_rmse_m < 0.04
+    # at the identity, as far from the first tracker's last pose as that is from the origin.
+    # (Not an ATE bound: how far the first map carries depends on how busy the machine keeps
+    # the mapper; a loaded one gave 8.5 cm with every frame tracked on the first map.)
+    last = before[half - 1].T_wc[:3, 3]
+    gap = np.linalg.norm(after[0].T_wc[:3, 3] - last)
+    assert gap < 0.3 * np.linalg.norm(last), (gap, last)
 
 
 def test_start_order_is_free_and_sigterm_flushes_every_output(sequence, tmp_path):
