@@ -20,7 +20,7 @@ import pytest
 from dimslam.common.cli import main
 from dimslam.common.io.trajectory import read_tum
 from dimslam.common.net.launch import loopback_endpoints
-from dimslam.common.net.messages import PoseMessage, message_type
+from dimslam.common.net.messages import MapSnapshot, PoseMessage, message_type
 from dimslam.common.net.transport import Inbox, Keys, Presence, TransportConfig, open_session
 
 pytestmark = pytest.mark.e2e
@@ -266,6 +266,13 @@ def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):
         svc.start("camera", str(sequence), "--end", str(half))
         before = _poses_until_end(svc.poses)
         assert first.wait(60) == 0
+        # The running map: the mapper has mapped what the first tracker sent, up to its last
+        # frame. How slowly a busy machine gets there is not what this test is about.
+        mapped: set[int] = set()
+        while half - 1 not in mapped:
+            payload = svc.maps.get(120)
+            assert payload is not None, f"the mapper stopped having mapped {sorted(mapped)}"
+            mapped |= set(MapSnapshot.from_bytes(payload).poses)
         late = svc.start("tracker")
         assert svc.presence.wait_for("tracker", 60)
         svc.start("camera", str(sequence), "--start", str(half))
