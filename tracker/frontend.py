@@ -72,9 +72,13 @@ class FrontEnd:
         self.next_guess: torch.Tensor | None = None
         self.last_result: TrackResult | None = None
         self.lost: list[tuple[int, float]] = []  # (index, timestamp) of the frames lost
-        self.relocalizing = False
         self.residuals: deque[float] = deque(maxlen=RESIDUAL_HISTORY)
         self.gap = 0  # frames lost since the last one tracked
+
+    @property
+    def relocalizing(self) -> bool:
+        """Whether the last frame was lost: the next one is searched for, not just tracked."""
+        return self.gap > 0
 
     @property
     def keyframes(self) -> list[FrameState]:
@@ -145,17 +149,15 @@ class FrontEnd:
         except TrackingLost as error:
             self.frames.pop()
             self.lost.append((index, timestamp))
-            self.gap += 1
             if not self.relocalizing:
                 log.warning("tracking lost at frame %d (%s): relocalizing", index, error)
             else:
                 log.debug("still lost at frame %d: %s", index, error)
-            self.relocalizing = True
+            self.gap += 1
             return None
         self.residuals.append(self.last_result.stats.loss)
         if self.relocalizing:
             log.info("relocalized at frame %d after %d lost frames", index, self.gap)
-            self.relocalizing = False
         self.gap = 0
         if self.tracker.is_keyframe(field, state, keyframes[-1]):
             state.keyframe = True
@@ -182,7 +184,9 @@ class FrontEnd:
         centre = guess[:3, 3]
         near = sorted(keyframes, key=lambda kf: float((kf.T_wc[:3, 3] - centre).norm()))
         starts += [kf.T_wc for kf in near]
-        return starts[: self.cfg.tracker.reloc_candidates]
+        starts = starts[: self.cfg.tracker.reloc_candidates]
+        # Across a short gap the carried motion is the guess itself: search from it once.
+        return [s for i, s in enumerate(starts) if not any(torch.equal(s, t) for t in starts[:i])]
 
     def map_changed(self, field: FieldFn, version: int) -> int:
         """A new map (after a mapping round, or a snapshot swapped in): let the solver refresh
