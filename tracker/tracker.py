@@ -57,8 +57,17 @@ class TrackerConfig:
         20, "Iterations per frame: Adam steps, or Gauss-Newton steps over all pyramid levels."
     )
     levels: int = option(4, "direct: image pyramid levels, coarse to fine.")
-    ref_points: int = option(800, "direct: high-gradient points rendered per keyframe.")
-    references: int = option(3, "direct: keyframes a frame is tracked against.")
+    ref_points: int = option(500, "direct: high-gradient points rendered per keyframe.")
+    references: int = option(
+        6,
+        "direct: keyframes a frame is tracked against: the newest and those that see most of "
+        "its view (more of them anchor it to older, better mapped keyframes).",
+    )
+    refresh: int = option(
+        1,
+        "direct: of the keyframes a frame is tracked against, how many whose depth an older "
+        "map rendered are rendered again from the newest (the stalest first).",
+    )
     huber: float = option(9 / 255, "direct: Huber threshold on intensity residuals in [0, 1].")
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
     lost_residual: float = option(

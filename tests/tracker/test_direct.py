@@ -122,6 +122,19 @@ def test_references_are_rendered_per_map_not_per_frame():
     assert t.map_changed(wall, kfs, version=2) == 2  # a new map: the newest render again
 
 
+def test_an_older_keyframe_tracked_against_is_rendered_again_from_a_newer_map():
+    t = solver(references=2, refresh=1)
+    kfs = [keyframe(KF, 0), keyframe(TRUTH, 1), keyframe(TRUTH, 2)]
+    t.map_changed(wall, kfs[:1], version=1)
+    t.map_changed(wall, kfs, version=2)  # renders the newest two; keyframe 0 keeps version 1
+    assert t.references[0].version == 1
+    frame = FrameState(3, 0.0, textured_wall_image(TRUTH, CAM), TRUTH.clone())
+    t.references[2].p_k = t.references[2].p_k[:5]  # too few points: keyframe 0 is chosen
+    result = t.track(wall, [frame], kfs)
+    assert sorted(result.stats.references) == [0, 1]
+    assert result.stats.rendered == 1 and t.references[0].version == 2
+
+
 def test_keyframes_by_flow_and_by_lost_overlap_without_rendering():
     t = solver()
     kf = keyframe(torch.eye(4))
