@@ -11,7 +11,9 @@ What every frame goes through on the tracking side, written once for both driver
    become a keyframe. A frame the solver cannot place is *lost*: it gets no pose (none is
    invented), and the next frames are searched for (`relocalize`) from their guess, the last
    motion carried over the gap and the nearest keyframes' poses, until one aligns with a
-   residual like the frames tracked before the loss (relocalization).
+   residual like the frames tracked before the loss (relocalization). Where a lost frame's
+   solve ended (`TrackingLost.best`) still feeds the motion model, so that through a stretch
+   where the map is too poor to accept a solve the guesses keep following the camera.
 3. Every `mapper.every` frames the frames tracked since the last hand-over are due to the
    mapper (`batch_due`, `take_batch`); how they get there is the driver's business (the same
    objects in one process, a message in the service).
@@ -74,6 +76,9 @@ class FrontEnd:
         self.lost: list[tuple[int, float]] = []  # (index, timestamp) of the frames lost
         self.residuals: deque[float] = deque(maxlen=RESIDUAL_HISTORY)
         self.gap = 0  # frames lost since the last one tracked
+        # (index, T_wc) where the solves of the frames lost since the last one tracked ended,
+        # when they ended somewhere (`TrackingLost.best`): followed by the motion model only.
+        self.followed: list[tuple[int, torch.Tensor]] = []
 
     @property
     def relocalizing(self) -> bool:
@@ -111,17 +116,19 @@ class FrontEnd:
         return self.extrapolate(index, MAX_VELOCITY_STEPS)
 
     def extrapolate(self, index: int, limit: int) -> torch.Tensor:
-        """The motion between the last two frames, per frame, carried on to frame `index`:
+        """The motion between the last two poses, per frame, carried on to frame `index`:
         the last pose when either gap (between those two, or on to `index`) exceeds `limit`
-        frames, or when there is only one frame."""
-        last = self.frames[-1]
-        before = self.frames[-2] if len(self.frames) > 1 else None
-        steps = index - last.index
-        if before is None or not 0 < last.index - before.index <= limit or not 0 < steps <= limit:
-            return last.T_wc.clone()
-        twist = pose.log_se3(pose.compose(pose.invert(before.T_wc), last.T_wc))
-        per_frame = twist / (last.index - before.index)
-        return pose.normalize(pose.compose(last.T_wc, pose.exp_se3(per_frame * steps)))
+        frames, or when there is only one. The poses are the frames' and, after them, where
+        the solves of the frames lost since ended (`followed`): through a stretch where the
+        map is too poor to accept a solve, the guesses still follow the camera."""
+        recent = [(f.index, f.T_wc) for f in self.frames[-2:]] + self.followed[-2:]
+        (last, T_last), before = recent[-1], recent[-2] if len(recent) > 1 else None
+        steps = index - last
+        if before is None or not 0 < last - before[0] <= limit or not 0 < steps <= limit:
+            return T_last.clone()
+        twist = pose.log_se3(pose.compose(pose.invert(before[1]), T_last))
+        per_frame = twist / (last - before[0])
+        return pose.normalize(pose.compose(T_last, pose.exp_se3(per_frame * steps)))
 
     def track(
         self, field: FieldFn, index: int, timestamp: float, rgb: torch.Tensor
@@ -149,6 +156,8 @@ class FrontEnd:
         except TrackingLost as error:
             self.frames.pop()
             self.lost.append((index, timestamp))
+            if error.best is not None:
+                self.followed.append((index, error.best))
             if not self.relocalizing:
                 log.warning("tracking lost at frame %d (%s): relocalizing", index, error)
             else:
@@ -159,6 +168,7 @@ class FrontEnd:
         if self.relocalizing:
             log.info("relocalized at frame %d after %d lost frames", index, self.gap)
         self.gap = 0
+        self.followed.clear()
         if self.tracker.is_keyframe(field, state, keyframes[-1]):
             state.keyframe = True
         stats = self.last_result.stats

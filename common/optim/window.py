@@ -25,7 +25,18 @@ from dimslam.common.optim.objective import LossConfig, WindowLoss, window_object
 
 
 class TrackingLost(DimslamError):
-    """The optimization diverged (non-finite or exploding loss, non-finite poses)."""
+    """A frame could not be placed: the optimization diverged, or its result failed a check.
+
+    Attributes:
+        best: where the solve ended when only its checks failed (a high residual, few inliers):
+            never published, but the motion model may follow it through a stretch of frames
+            where the map is poor, so that the frames after it start near the camera. None when
+            the solve locked onto something else, turned non-finite or did not run.
+    """
+
+    def __init__(self, message: str, best: torch.Tensor | None = None) -> None:
+        super().__init__(message)
+        self.best = best
 
 
 @dataclass(eq=False)

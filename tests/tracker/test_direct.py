@@ -11,7 +11,7 @@ from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.render import RenderConfig
 from dimslam.common.optim.window import FrameState, TrackingLost
-from dimslam.tracker.direct import DirectTracker
+from dimslam.tracker.direct import DirectTracker, _best_fit
 from dimslam.tracker.tracker import TrackerConfig
 
 CAM = Camera(160, 120, 125.0, 125.0, 79.5, 59.5)
@@ -72,13 +72,15 @@ def test_a_frame_of_something_else_is_lost_and_keeps_its_guess():
     noise = torch.rand(CAM.height, CAM.width, 3, generator=torch.Generator().manual_seed(1))
     guess = TRUTH.clone()
     frame = FrameState(1, 0.1, noise, guess)
-    with pytest.raises(TrackingLost, match="residual|inliers"):
+    with pytest.raises(TrackingLost, match="residual|inliers") as lost:
         t.track(wall, [frame], [])
     assert torch.equal(frame.T_wc, guess)
+    assert lost.value.best is not None  # where the solve ended: the motion model may follow
     # Facing away from every rendered keyframe: nothing to track against.
     away = pose.make_pose(pose.exp_so3(torch.tensor([0.0, 3.14, 0.0])), torch.zeros(3))
-    with pytest.raises(TrackingLost, match="overlaps"):
+    with pytest.raises(TrackingLost, match="overlaps") as lost:
         t.track(wall, [FrameState(2, 0.2, noise, away)], [])
+    assert lost.value.best is None
 
 
 def test_a_blank_frame_is_lost_for_want_of_texture():
@@ -155,3 +157,18 @@ def test_keyframes_by_flow_and_by_lost_overlap_without_rendering():
     assert t.is_keyframe(wall, at(0.0, 0.6), kf)
     t.cfg = dataclasses.replace(narrow, keyframe_overlap=0.0)
     assert not t.is_keyframe(wall, at(0.0, 0.6), kf)
+
+
+def test_a_frame_counts_as_fitting_when_one_reference_fits_it():
+    # 200 points of reference 0 fit at 60 %, 600 of reference 1 (depth off) at 10 %: 22.5 %
+    # together, the share of a frame of noise; 60 % for the reference that fits.
+    ref_of = torch.cat([torch.zeros(200, dtype=torch.long), torch.ones(600, dtype=torch.long)])
+    inlier = torch.cat([torch.arange(200) % 5 < 3, torch.arange(600) % 10 == 0])
+    valid = torch.ones(800, dtype=torch.bool)
+    assert _best_fit(inlier, valid, ref_of, 2) == pytest.approx(0.6)
+    # A reference with too few points in view does not count on its own.
+    valid[50:] = valid[50:] & (ref_of[50:] == 1)
+    assert _best_fit(inlier, valid, ref_of, 2) == pytest.approx(0.1)
+    valid[:] = False
+    valid[:40] = True  # no reference has enough: all points together
+    assert _best_fit(inlier, valid, ref_of, 2) == pytest.approx(24 / 40)

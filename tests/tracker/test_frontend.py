@@ -62,6 +62,16 @@ def test_guess_carries_the_motion_on_but_not_across_a_long_gap():
     assert f.next_guess is None
 
 
+def test_guesses_follow_where_the_solves_of_lost_frames_ended():
+    f = front()
+    f.frames = [FrameState(0, 0.0, None, moved(0.0)), FrameState(1, 0.0, None, moved(0.1))]
+    f.followed = [(2, moved(0.15))]  # frame 2 lost; its solve ended 5 cm short of the motion
+    assert torch.allclose(f.guess(3), moved(0.2), atol=1e-6)
+    f.followed.append((3, moved(0.3)))
+    assert torch.allclose(f.guess(4), moved(0.45), atol=1e-6)
+    assert torch.allclose(f.extrapolate(6, 30), moved(0.75), atol=1e-6)
+
+
 def test_refined_poses_move_the_later_frames_with_them():
     f = front()
     f.frames = [FrameState(i, 0.0, None, moved(0.1 * i)) for i in range(4)]
