@@ -37,6 +37,8 @@ from dimslam.common.slam import run_dataset
 log = logging.getLogger("dimslam")
 
 DEMO_OUT = Path("out/demo")
+VIEW_MESH_EVERY = 5
+"""A live view asks the mapper for its mesh every this many map snapshots."""
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -143,6 +145,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     device = device_for(args.device)
     if args.realtime is not None and args.map_lag is not None:
         raise DimslamError("--realtime never holds the tracker back: it takes no --map-lag")
+    viewer = viewer_args(args)
     if args.single_process:
         if args.map_lag is not None or args.realtime is not None:
             raise DimslamError(
@@ -154,7 +157,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         run = run_dataset
     else:
         lag = launch.MAP_LAG if args.map_lag is None else args.map_lag
-        run = partial(launch.run_service, threads=args.threads, map_lag=lag, realtime=args.realtime)
+        run = partial(
+            launch.run_service,
+            threads=args.threads,
+            map_lag=lag,
+            realtime=args.realtime,
+            viewer=viewer,
+        )
     summary = run(
         args.dataset,
         args.out,
@@ -165,6 +174,36 @@ def cmd_run(args: argparse.Namespace) -> int:
         mesh=not args.no_mesh,
     )
     return finish_run(summary, args.out)
+
+
+def add_view_options(p: argparse.ArgumentParser) -> None:
+    """`--rerun` / `--rerun-save`: a live view of the run (dimslam-viewer, the [viz] extra)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument(
+        "--rerun",
+        action="store_true",
+        help="service only: show the run live in a rerun viewer (started if none runs; needs "
+        "pip install 'dimslam[viz]')",
+    )
+    g.add_argument(
+        "--rerun-save",
+        type=Path,
+        metavar="FILE",
+        help="service only: record the live view to FILE (.rrd) instead; open it with `rerun FILE`",
+    )
+
+
+def viewer_args(args: argparse.Namespace) -> list[str] | None:
+    """The viewer's sink options, or None without a view; refused in one process."""
+    if not (args.rerun or args.rerun_save):
+        return None
+    if args.single_process:
+        raise DimslamError(
+            "--rerun and --rerun-save watch the service's topics: drop --single-process"
+        )
+    if args.rerun_save is not None:
+        return ["--save", str(args.rerun_save.resolve()), "--mesh-every", str(VIEW_MESH_EVERY)]
+    return ["--spawn", "--mesh-every", str(VIEW_MESH_EVERY)]
 
 
 def finish_run(summary: RunSummary, out: Path) -> int:
@@ -185,6 +224,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the built-in default: render the synthetic scene, run, evaluate."""
 
     out: Path = args.out
+    viewer = viewer_args(args)
     scene = out / "scene"
     width, height = args.size
     print(
@@ -203,7 +243,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     bar.close()
     mode = "in one process" if args.single_process else "through the service"
     print(f"2/2 running SLAM {mode} ({args.preset} preset), evaluating against the ground truth")
-    run = run_dataset if args.single_process else launch.run_service
+    run = run_dataset if args.single_process else partial(launch.run_service, viewer=viewer)
     summary = run(str(scene), out, PRESETS[args.preset], torch.device("cpu"))
     return finish_run(summary, out)
 
@@ -308,6 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="track and map in this process instead of through the service",
     )
+    add_view_options(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser(
@@ -350,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
         "busy) and report frames received, tracked, dropped and lost, and the latency from "
         "camera to pose",
     )
+    add_view_options(p)
     add_slam_options(p)
     p.set_defaults(func=cmd_run)
     return parser

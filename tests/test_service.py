@@ -8,6 +8,7 @@
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -35,12 +36,20 @@ def sequence(tmp_path_factory):
     return out
 
 
-def test_run_through_the_service(sequence, tmp_path):
-    out = tmp_path / "run"
+@pytest.fixture(scope="module")
+def service_run(sequence, tmp_path_factory):
+    """One `dimslam run` through the service, watched by the viewer into an .rrd file."""
+    out = tmp_path_factory.mktemp("service") / "run"
     # Mapping rounds of 40 iterations are slower than tracking 5 frames: a tracker left free
     # would run ahead and the mapper would take several batches in one round.
     args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh"]
+    args += ["--rerun-save", str(out / "run.rrd")]
     assert main(["run", str(sequence), "--out", str(out), *args]) == 0
+    return out
+
+
+def test_run_through_the_service(service_run):
+    out = service_run
     assert len(read_tum(out / "trajectory.txt")) == FRAMES
     assert len(read_tum(out / "trajectory_online.txt")) == FRAMES
     assert len(read_tum(out / "poses_received.txt")) == FRAMES  # no pose lost on the way
@@ -53,6 +62,46 @@ def test_run_through_the_service(sequence, tmp_path):
     # the tracker stays within one round of the map (launch.MAP_LAG).
     assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
     assert json.loads((out / "config.json").read_text())["map_lag"] == 1
+
+
+def test_the_viewer_records_the_run_as_rerun_shows_it(service_run):
+    """The .rrd the viewer wrote, read back: images, the tracked path with one point per
+    frame, the aligned ground truth, keyframe frusta, rendered depth and the mapper's mesh."""
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    columns: dict[str, set[str]] = {}
+    for chunk in RrdReader(service_run / "run.rrd").stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        batch = chunk.to_record_batch()
+        columns.setdefault(chunk.entity_path, set()).update(batch.schema.names)
+        if chunk.entity_path == "/world/trajectory":
+            strips = batch.column("LineStrips3D:strips").to_pylist()
+            longest = max(len(s[0]) for s in strips if s)
+    # The viewer starts before the camera but may subscribe after its first frames: most of
+    # them, not all, are shown.
+    assert rows["/world/camera/image"] >= FRAMES // 2
+    assert rows["/world/camera"] == FRAMES  # one pose per frame, none lost
+    assert longest == FRAMES
+    assert {"Pinhole:image_from_camera", "Transform3D:translation"} <= columns["/world/keyframes/0"]
+    assert rows["/world/ground_truth"] >= 1
+    assert rows["/keyframe/depth"] >= 1 and "DepthImage:buffer" in columns["/keyframe/depth"]
+    assert "Mesh3D:vertex_positions" in columns["/world/mesh"]
+    assert "shown:" in (service_run / "viewer.log").read_text()
+
+
+def test_evo_agrees_with_the_evaluator(service_run, sequence, tmp_path):
+    """evo, the field's reader of TUM trajectories, on the run's trajectory: the same ATE."""
+    evo = subprocess.run(
+        [os.path.join(os.path.dirname(sys.executable), "evo_ape"), "tum",
+         str(sequence / "groundtruth.txt"), str(service_run / "trajectory.txt"),
+         "--align", "--correct_scale"],
+        capture_output=True, text=True, env={**os.environ, "HOME": str(tmp_path)}, timeout=120,
+    )  # fmt: skip
+    assert evo.returncode == 0, evo.stderr
+    rmse = float(re.search(r"rmse\s+([0-9.eE+-]+)", evo.stdout).group(1))
+    ours = json.loads((service_run / "metrics.json").read_text())["ate_rmse_m"]
+    assert abs(rmse - ours) <= 1e-4, (rmse, ours)
 
 
 def test_map_lag_0_tracks_every_frame_on_the_newest_map(sequence, tmp_path):

@@ -72,6 +72,7 @@ def run_service(
     layout: str | None = None,
     mesh: bool = True,
     realtime: float | None = None,
+    viewer: list[str] | None = None,
 ) -> RunSummary:
     """Run the service on a dataset and write the outputs of `run_dataset` plus the online ones.
 
@@ -138,6 +139,12 @@ def run_service(
         )
         + "\n"
     )
+    if viewer is not None:  # started first, so that it sees the first frames
+        commands = {
+            "viewer": ["dimslam.common.net.viewer", *both, "--gt", source, "--threads", "1",
+                       *settings, *viewer],
+            **commands,
+        }  # fmt: skip
     procs: dict[str, subprocess.Popen] = {}
     logs = {}
     started = time.perf_counter()
@@ -149,7 +156,7 @@ def run_service(
                 stdout=logs[role],
                 stderr=subprocess.STDOUT,
             )
-        print(f"service: mapper, tracker, camera and pose client up (session {session})")
+        print(f"service: {', '.join(procs)} up (session {session})")
         codes = _wait(procs, out_dir)
     finally:
         for p in procs.values():
@@ -157,7 +164,7 @@ def run_service(
         for f in logs.values():
             f.close()
     seconds = time.perf_counter() - started
-    for role in ("camera", "tracker", "mapper", "poses"):
+    for role in procs:
         if codes.get(role) not in (0, None):
             raise DimslamError(
                 f"the {role} exited with code {codes[role]}; see {out_dir / (role + '.log')}"
@@ -230,10 +237,12 @@ def _wait(procs: dict[str, subprocess.Popen], out_dir: Path) -> dict[str, int]:
                 running[0].wait(timeout=1.0)  # supervision tick: notice a failure elsewhere
             except subprocess.TimeoutExpired:
                 pass
-    try:
-        codes["poses"] = procs["poses"].wait(timeout=STOP_GRACE_S)
-    except subprocess.TimeoutExpired:
-        log.error("the pose client did not see the end of the stream")
+    for client in ("poses", "viewer"):
+        if client in procs:
+            try:
+                codes[client] = procs[client].wait(timeout=STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                log.error("the %s client did not see the end of the stream", client)
     return codes
 
 

@@ -28,6 +28,7 @@ from dimslam.common.net.messages import (
     PoseMessage,
     message_type,
 )
+from dimslam.common.net.ros2 import Ros2Bridge, Ros2Topics, topic_key
 from dimslam.common.net.service import (
     TICK_S,
     add_transport_options,
@@ -89,6 +90,36 @@ def _poses_options(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="exit 1 if no pose for S s",
     )
+    g = p.add_argument_group(
+        "ROS 2",
+        "republish the poses as ROS 2 messages (CDR) on the zenoh keys that "
+        "zenoh-bridge-ros2dds routes to ROS 2 topics (needs the [ros] extra; deploy/README.md)",
+    )
+    g.add_argument(
+        "--ros2",
+        action="store_true",
+        help="publish every tracked pose as geometry_msgs/msg/PoseStamped and, after each map "
+        "refinement, the keyframes as nav_msgs/msg/Path",
+    )
+    g.add_argument(
+        "--ros2-pose-topic",
+        default=Ros2Topics.pose,
+        metavar="TOPIC",
+        help=f"ROS 2 topic of the poses (default {Ros2Topics.pose}: zenoh key "
+        f"{topic_key(Ros2Topics.pose)})",
+    )
+    g.add_argument(
+        "--ros2-path-topic",
+        default=Ros2Topics.path,
+        metavar="TOPIC",
+        help=f"ROS 2 topic of the keyframe path (default {Ros2Topics.path})",
+    )
+    g.add_argument(
+        "--ros2-frame-id",
+        default=Ros2Topics.frame_id,
+        metavar="FRAME",
+        help=f"header.frame_id of the messages: the map's frame (default {Ros2Topics.frame_id})",
+    )
 
 
 def _decode(payload: bytes) -> PoseMessage | EndOfStream:
@@ -135,18 +166,27 @@ def _receive(
     refined: Inbox,
     stop: Stop,
     latest: dict[int, PoseMessage],
+    bridge: Ros2Bridge | None = None,
 ) -> int:
     """Print poses until the end of stream, `--count`, a stop (0) or `--timeout` (1).
 
     After the end, refinements still on their way on the keyframes topic (sent before the end,
     but zenoh orders per topic only) are taken for `END_GRACE_S` more."""
     rejects = Rejects()
+    refinements = 0  # since the keyframe path was last published
+
+    def publish_path() -> None:
+        nonlocal refinements
+        if bridge is not None and refinements:
+            bridge.keyframes(latest.values())
+            refinements = 0
+
     tracked = 0
     ended = False
     last = time.monotonic()
 
     def take(topic: str, payload: bytes) -> None:
-        nonlocal ended, last, tracked
+        nonlocal ended, last, tracked, refinements
         try:
             msg = _decode(payload)
         except MessageError as e:
@@ -158,14 +198,19 @@ def _receive(
                 ended = True
             return
         last = time.monotonic()
+        if bridge is not None and topic == keys.poses:
+            bridge.pose(msg)
         # Refinements and tracked poses race on two topics: the newer map decides, not the
         # order of arrival; for one map the last pose received wins.
         kept = latest.get(msg.seq)
         if not msg.lost and (kept is None or msg.map_version >= kept.map_version):
             latest[msg.seq] = msg
-        _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)
+        if topic == keys.poses or args.keyframes:
+            _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)
         if topic == keys.poses:
             tracked += 1
+        else:
+            refinements += 1  # the keyframe path goes out once per batch (publish_path)
 
     while not (stop or ended):
         payload = inbox.get(TICK_S)
@@ -175,16 +220,19 @@ def _receive(
         for topic, payload in batch:
             take(topic, payload)
             if args.count is not None and tracked >= args.count:
+                publish_path()
                 return 0
+        publish_path()
         if not ended and args.timeout is not None and time.monotonic() - last > args.timeout:
             log.error("no pose for %g s; giving up after %d poses", args.timeout, tracked)
             return 1
-    if ended and args.keyframes:
+    if ended and (args.keyframes or bridge is not None):
         deadline = time.monotonic() + END_GRACE_S
         while not stop and (left := deadline - time.monotonic()) > 0:
             payload = refined.get(min(left, TICK_S))
             if payload is not None:
                 take(keys.keyframes, payload)
+        publish_path()
     return 0
 
 
@@ -207,6 +255,9 @@ def run_poses(args: argparse.Namespace) -> int:
     refined = Inbox(POSE_QUEUE, keys.keyframes)
     stop.watch(inbox)
     latest: dict[int, PoseMessage] = {}
+    topics = None
+    if args.ros2:
+        topics = Ros2Topics(args.ros2_pose_topic, args.ros2_path_topic, args.ros2_frame_id)
 
     def on_refined(sample: zenoh.Sample) -> None:
         refined.callback(sample)
@@ -216,12 +267,16 @@ def run_poses(args: argparse.Namespace) -> int:
         with stop.on_signals(), open_session(cfg, "poses") as session:
             # Keep references: an unreferenced subscriber is undeclared (zenoh.md trap 4).
             subscribers = [session.declare_subscriber(keys.poses, inbox.callback)]
-            if args.keyframes:
+            if args.keyframes or topics is not None:
                 subscribers.append(session.declare_subscriber(keys.keyframes, on_refined))
+            bridge = None if topics is None else Ros2Bridge(session, topics)
             # Declared after the subscriptions: a peer that sees this token knows we listen.
             presence = Presence(session, keys, "poses", on_change=log_peer)
-            code = _receive(args, keys, inbox, refined, stop, latest)
+            code = _receive(args, keys, inbox, refined, stop, latest, bridge)
             presence.close()
+            if bridge is not None:
+                log.info("published %d poses as ROS 2 messages", bridge.published)
+                bridge.close()
             for subscriber in subscribers:
                 subscriber.undeclare()
     finally:

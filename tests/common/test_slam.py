@@ -67,6 +67,13 @@ def test_map_lag_is_refused_in_one_process(sequence, tmp_path, capsys):
     assert not (tmp_path / "x").exists()  # refused before anything ran
 
 
+def test_a_live_view_is_refused_in_one_process(sequence, tmp_path, capsys):
+    rrd = tmp_path / "x.rrd"
+    assert main([*one_process(sequence, tmp_path / "x"), "--rerun-save", str(rrd)]) == 2
+    assert "drop --single-process" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not rrd.exists()
+
+
 def test_too_short_a_sequence_is_refused(sequence, tmp_path, capsys):
     assert main([*one_process(sequence, tmp_path / "x"), "--max-frames", "2"]) == 2
     assert "too short" in capsys.readouterr().err

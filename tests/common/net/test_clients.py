@@ -24,6 +24,7 @@ import zenoh
 from dimslam.common.io.datasets import open_dataset
 from dimslam.common.io.synth import write_sequence
 from dimslam.common.io.trajectory import read_tum
+from dimslam.common.net import ros2
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import EndOfStream, FrameMessage, PoseMessage, message_type
 from dimslam.common.net.transport import Inbox, Keys, Presence, publisher
@@ -267,3 +268,60 @@ def test_clients_give_up_when_nobody_is_there(scene, start):
     assert code == 2 and "error: no tracker subscribed" in err
     code, _, err = _finish(poses)
     assert code == 1 and "no pose for 0.5 s" in err
+
+
+def test_pose_client_republishes_poses_as_ros2_messages(tracker, start):
+    """`--ros2`: each tracked pose as a CDR PoseStamped, the keyframes as a Path, on the keys
+    zenoh-bridge-ros2dds routes to ROS 2 topics, decoded here with the same library."""
+    prefix = f"t{uuid.uuid4().hex[:12]}"  # ROS 2 keys are not namespaced by session
+    poses, paths = Inbox(64, "ros2 poses"), Inbox(64, "ros2 paths")
+    subscribers = [
+        tracker.session.declare_subscriber(f"{prefix}/pose", poses.callback),
+        tracker.session.declare_subscriber(f"{prefix}/path", paths.callback),
+    ]
+    client = start(
+        "dimslam-poses", *tracker.args(), "--ros2", "--ros2-frame-id", "world",
+        "--ros2-pose-topic", f"/{prefix}/pose", "--ros2-path-topic", f"/{prefix}/path",
+    )  # fmt: skip
+    tracker.wait_for_pose_client(keyframes=True)
+
+    quarter_turn = np.array([[0.0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+    refined = np.eye(4)
+    refined[1, 3] = 0.5
+    refinement = PoseMessage(0, 2.25, refined, keyframe=True, map_version=2).to_bytes()
+    tracker.keyframes.put(refinement)  # twice, first and last: see the test above
+    tracker.poses.put(PoseMessage(0, 2.25, quarter_turn, keyframe=True).to_bytes())
+    tracker.poses.put(PoseMessage(1, 3.5, None, lost=True).to_bytes())  # no message for it
+    tracker.poses.put(PoseMessage(2, 4.0, np.eye(4)).to_bytes())
+    tracker.keyframes.put(refinement)
+    tracker.poses.put(EndOfStream(3).to_bytes())
+    code, _, err = _finish(client)
+    assert code == 0, err
+
+    received = [ros2.decode(poses.get(WAIT_S), ros2.POSE_TYPE) for _ in range(2)]
+    assert poses.get(0.5) is None  # the lost frame published nothing
+    first, second = received
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == (2, 250_000_000)
+    assert (second.header.stamp.sec, second.header.stamp.nanosec) == (4, 0)
+    assert first.header.frame_id == second.header.frame_id == "world"
+    p, q = first.pose.position, first.pose.orientation
+    np.testing.assert_allclose([p.x, p.y, p.z], [1, 2, 3])
+    half = np.sqrt(0.5)  # a quarter turn about z
+    np.testing.assert_allclose([q.x, q.y, q.z, q.w], [0, 0, half, half], atol=1e-12)
+
+    last = None
+    while (payload := paths.get(0.5 if last else WAIT_S)) is not None:
+        last = ros2.decode(payload, ros2.PATH_TYPE)
+    assert last is not None, "no keyframe path"
+    assert last.header.frame_id == "world" and len(last.poses) == 1  # frame 0, the keyframe
+    kf = last.poses[0]
+    assert kf.header.stamp.sec == 2
+    np.testing.assert_allclose([kf.pose.position.x, kf.pose.position.y], [0, 0.5])
+    for subscriber in subscribers:
+        subscriber.undeclare()
+
+
+def test_ros2_topic_names_are_checked(tracker, start):
+    client = start("dimslam-poses", *tracker.args(), "--ros2", "--ros2-pose-topic", "/bad name")
+    code, _, err = _finish(client)
+    assert code == 2 and "ROS 2 topic '/bad name'" in err
