@@ -124,6 +124,14 @@ def _camera_options(p: argparse.ArgumentParser) -> None:
         help="send at once instead of waiting for a subscribed tracker (datasets and videos)",
     )
     g.add_argument(
+        "--also-wait-for",
+        action="append",
+        default=[],
+        metavar="ROLE",
+        help="also wait until a process of ROLE (e.g. viewer) is alive and connected before "
+        "the first frame, so that it sees them all (repeatable; datasets and videos)",
+    )
+    g.add_argument(
         "--wait-timeout",
         type=positive_seconds,
         default=60.0,
@@ -204,13 +212,21 @@ class _Pacer:
 
 
 def _wait_for_tracker(
-    pub: zenoh.Publisher, presence: Presence, changed: threading.Event, stop: Stop, timeout: float
+    pub: zenoh.Publisher,
+    presence: Presence,
+    changed: threading.Event,
+    stop: Stop,
+    timeout: float,
+    others: Sequence[str] = (),
 ) -> bool:
-    """Wait until a tracker is alive and subscribed to the frames; False on timeout or stop."""
+    """Wait until a tracker is alive and subscribed to the frames, and a process of each of
+    `others` alive (its token reaches us over a direct link, after its subscriptions); False
+    on timeout or stop."""
     deadline = time.monotonic() + timeout
     # Cleared before each check, so a change during the check wakes the next wait.
     changed.clear()
-    while not (presence.alive("tracker") and pub.matching_status.matching):
+    roles = ("tracker", *others)
+    while not (all(presence.alive(r) for r in roles) and pub.matching_status.matching):
         remaining = deadline - time.monotonic()
         if stop or remaining <= 0:
             return False
@@ -292,9 +308,16 @@ def run_camera(args: argparse.Namespace) -> int:
         poses = session.declare_subscriber(keys.poses, mark.callback)
         if not (device or args.no_wait):
             log.info("waiting for a tracker in session %r", cfg.session)
-            if _wait_for_tracker(pub, presence, changed, stop, args.wait_timeout):
+            waited = (pub, presence, changed, stop, args.wait_timeout, args.also_wait_for)
+            if _wait_for_tracker(*waited):
                 watch_tracker.set()
             elif not stop:
+                missing = [r for r in args.also_wait_for if not presence.alive(r)]
+                if missing and presence.alive("tracker"):
+                    raise DimslamError(
+                        f"no {', '.join(missing)} connected in session {cfg.session!r} after "
+                        f"{args.wait_timeout:g} s (--also-wait-for)"
+                    )
                 raise DimslamError(
                     f"no tracker subscribed in session {cfg.session!r} after "
                     f"{args.wait_timeout:g} s: start dimslam-tracker with the same --session "

@@ -325,3 +325,14 @@ def test_ros2_topic_names_are_checked(tracker, start):
     client = start("dimslam-poses", *tracker.args(), "--ros2", "--ros2-pose-topic", "/bad name")
     code, _, err = _finish(client)
     assert code == 2 and "ROS 2 topic '/bad name'" in err
+
+
+def test_camera_waits_for_the_roles_it_is_told_to(scene, tracker, start):
+    """`--also-wait-for viewer`: a tracker alone does not start the stream."""
+    camera = start(
+        "dimslam-camera", str(scene), *tracker.args(), "--also-wait-for", "viewer",
+        "--wait-timeout", "2",
+    )  # fmt: skip
+    code, _, err = _finish(camera)
+    assert code == 2 and "no viewer connected" in err
+    assert tracker.frames.get(0.1) is None  # nothing was sent
