@@ -102,6 +102,10 @@ class BackEnd:
         if self.initialized and self.cfg.mapper.post_iters > 0:
             self.mapper.post_optimize(self.keyframes)
 
+    def reanchor(self) -> None:
+        """Anchor every non-keyframe held to the keyframe before it (a resumed map)."""
+        self._anchor(self.frames)
+
     def _anchor(self, frames: list[FrameState]) -> None:
         """Record each non-keyframe's pose relative to the keyframe before it."""
         keyframes = self.keyframes

@@ -7,7 +7,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from dimslam.common.net.service import add_process_options, service_main
+from dimslam.common.net.service import add_process_options, positive_int, service_main
 from dimslam.mapper.service import MapperService
 
 DESCRIPTION = (
@@ -32,17 +32,46 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="exit after the end of the stream (default: keep the map and answer queries)",
     )
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="DIR",
+        help="write DIR/checkpoint.msgpack (map, every frame's pose, the keyframes' images) "
+        "every --checkpoint-every rounds and at exit, atomically",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=positive_int,
+        default=10,
+        metavar="N",
+        help="rounds between checkpoints (default: 10)",
+    )
+    p.add_argument(
+        "--resume",
+        type=Path,
+        metavar="DIR",
+        help="start from DIR/checkpoint.msgpack (same --preset and overrides as when it was "
+        "written); a tracker still running goes on with it",
+    )
     add_process_options(p)
     return p
 
 
 def build(args: argparse.Namespace, *rest) -> MapperService:
-    return MapperService(*rest, exit_at_end=args.exit_at_end)
+    return MapperService(
+        *rest,
+        exit_at_end=args.exit_at_end,
+        checkpoint=args.checkpoint,
+        checkpoint_every=args.checkpoint_every,
+        resume=args.resume,
+    )
 
 
 def flush(args: argparse.Namespace, service: MapperService) -> None:
     if args.out is not None:
         service.write(args.out, args.mesh)
+    if args.checkpoint is not None:
+        service.write_checkpoint(args.checkpoint)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

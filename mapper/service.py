@@ -23,6 +23,7 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import time
 from pathlib import Path
@@ -32,13 +33,22 @@ import torch
 import zenoh
 
 from dimslam.common.config import SlamConfig, map_digest
+from dimslam.common.errors import DimslamError
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory, format_tum, write_tum
 from dimslam.common.map.mesh import EmptyMeshError
-from dimslam.common.net.exchange import from_batch, load_map, pose_array, to_batch, to_snapshot
+from dimslam.common.net.exchange import (
+    from_batch,
+    load_map,
+    pose_array,
+    pose_tensor,
+    to_batch,
+    to_snapshot,
+)
 from dimslam.common.net.messages import (
     MAX_BATCH_FRAMES,
     EndOfStream,
+    MapperCheckpoint,
     MappingBatch,
     MapSnapshot,
     MessageError,
@@ -64,6 +74,7 @@ MAX_BACKLOG = 2
 """Batches that may wait and still be mapped one round each. A tracker at `--map-lag 1` can
 have two waiting at the end of a round (it tracks fast, the mapper reads its inbox a moment
 later); more means the mapper has fallen behind a live stream."""
+CHECKPOINT_FILE = "checkpoint.msgpack"
 STOP_GRACE_S = 10.0
 """At a stop, how long the mapper waits for the tracker's last batch and end of stream (it
 stops waiting as soon as the end arrives; on a loaded 2-core machine the tracker's flush took
@@ -81,9 +92,14 @@ class MapperService:
         keys: Keys,
         stop: Stop,
         exit_at_end: bool = False,
+        checkpoint: Path | None = None,
+        checkpoint_every: int = 0,
+        resume: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.exit_at_end = exit_at_end
+        self.checkpoint_dir = checkpoint
+        self.checkpoint_every = checkpoint_every
         self.device = device
         self.stop = stop
         self.digest = map_digest(cfg)
@@ -110,6 +126,8 @@ class MapperService:
             session.declare_queryable(keys.query("keyframes"), self._answer_keyframes),
             session.declare_queryable(keys.query("mesh"), self.mesh_queries.put),
         ]
+        if resume is not None:  # before the token: a tracker that sees us must find the map
+            self.resume(resume)
         self.presence = Presence(session, keys, "mapper", self._peer_changed)
 
     @property
@@ -260,6 +278,9 @@ class MapperService:
         result = self.back.step()
         by_index = {f.index: f for f in self.frames}
         self._publish(batches[-1].round, [by_index[i] for i in result.window])
+        every = self.checkpoint_every
+        if self.checkpoint_dir is not None and every > 0 and self.rounds % every == 0:
+            self.write_checkpoint(self.checkpoint_dir)
 
     def _seed(self, snap: MapSnapshot) -> None:
         """A tracker's map, sent because this mapper had none: kept for its next batch."""
@@ -307,6 +328,87 @@ class MapperService:
             self.back.finish()
             self._publish(self.rounds, [])
         log.info("end of stream: map version %d, %d frames", self.version, len(self.frames))
+
+    # -- checkpoints ------------------------------------------------------------------------
+
+    def write_checkpoint(self, folder: Path) -> None:
+        """Write the map, every frame's pose and the images still held to
+        `folder/checkpoint.msgpack`, atomically: a crash mid-write leaves the previous one."""
+        if self.back is None or not self.back.initialized or self.camera is None:
+            return
+        back = self.back
+        poses = {f.index: pose_array(back.final_pose(f)) for f in back.frames}
+        snap = MapSnapshot(
+            self.version,
+            self.rounds,
+            self.digest,
+            {k: v.detach().cpu().numpy() for k, v in back.field.state_dict().items()},
+            poses,
+            tuple(f.index for f in back.keyframes),
+        )
+        held = [f for f in back.frames if f.rgb is not None]
+        images = tuple(
+            to_batch(held[i : i + MAX_BATCH_FRAMES], self.rounds, self.camera)
+            for i in range(0, len(held), MAX_BATCH_FRAMES)
+        )
+        frames = tuple((f.index, f.timestamp) for f in back.frames)
+        payload = MapperCheckpoint(snap, frames, images, self.rounds).to_bytes()
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / CHECKPOINT_FILE
+        tmp = path.with_suffix(".tmp")
+        with open(tmp, "wb") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        log.info(
+            "checkpoint: map version %d, %d frames, %d rounds -> %s",
+            self.version, len(frames), self.rounds, path,
+        )  # fmt: skip
+
+    def resume(self, folder: Path) -> None:
+        """Start from `folder/checkpoint.msgpack` instead of from nothing.
+
+        Raises:
+            DimslamError: no readable checkpoint there, or one of other map settings.
+        """
+        path = folder / CHECKPOINT_FILE
+        try:
+            ckpt = MapperCheckpoint.from_bytes(path.read_bytes())
+        except OSError as e:
+            raise DimslamError(
+                f"--resume {folder}: cannot read {path.name} ({e.strerror})"
+            ) from None
+        except MessageError as e:
+            raise DimslamError(f"--resume {folder}: {path.name} is not a checkpoint: {e}") from None
+        snap = ckpt.snapshot
+        if snap.config != self.digest:
+            raise DimslamError(
+                f"--resume {folder}: the checkpoint's map has other settings; give the mapper "
+                "the --preset and overrides it was written with"
+            )
+        if not ckpt.images:
+            raise DimslamError(f"--resume {folder}: the checkpoint holds no keyframe images")
+        self._reset(ckpt.images[0].camera)
+        back = self.back
+        assert back is not None
+        load_map(back.field, snap)
+        images = {f.seq: f for b in ckpt.images for f in b.frames}
+        keyframes = set(snap.keyframes)
+        for seq, timestamp in ckpt.frames:
+            item = images.get(seq)
+            rgb = None if item is None else torch.from_numpy(item.rgb).to(self.device) / 255.0
+            T_wc = pose_tensor(item.T_wc if item is not None else snap.poses[seq], self.device)
+            back.frames.append(FrameState(seq, timestamp, rgb, T_wc, seq in keyframes))
+        back.initialized = True
+        back.rounds = ckpt.rounds
+        back.reanchor()
+        self.version = snap.version
+        self.snapshot_bytes = snap.to_bytes()
+        log.info(
+            "resumed from %s: map version %d, %d frames (%d keyframes), %d rounds",
+            path, self.version, len(back.frames), len(keyframes), back.rounds,
+        )  # fmt: skip
 
     # -- outputs ----------------------------------------------------------------------------
 

@@ -21,7 +21,7 @@ import pytest
 from dimslam.common.cli import main
 from dimslam.common.io.trajectory import read_tum
 from dimslam.common.net.launch import loopback_endpoints
-from dimslam.common.net.messages import MapSnapshot, PoseMessage, message_type
+from dimslam.common.net.messages import MapperCheckpoint, MapSnapshot, PoseMessage, message_type
 from dimslam.common.net.transport import Inbox, Keys, Presence, TransportConfig, open_session
 
 pytestmark = pytest.mark.e2e
@@ -306,6 +306,57 @@ def test_a_restarted_mapper_gets_the_trackers_map(sequence, tmp_path):
         # Its first round may still run after the stream's end: wait for it, bounded.
         snap = svc.maps.get(120)
         assert snap is not None, "the restarted mapper published no snapshot"
+
+
+def test_a_killed_mapper_resumes_from_its_checkpoint(sequence, tmp_path):
+    """SIGKILL, then `--resume`: the new mapper goes on with its own map from disk (no map is
+    asked of the tracker), the tracker takes its maps, every frame gets a pose, and SIGTERM
+    writes a checkpoint holding the whole stream."""
+    ckpt = tmp_path / "ckpt"
+    saving = ["--checkpoint", str(ckpt), "--checkpoint-every", "1"]
+    with Service(tmp_path, "resume") as svc:
+        mapper = svc.start("mapper", *saving)
+        svc.start("tracker")
+        assert svc.presence.wait_for("tracker", 60) and svc.presence.wait_for("mapper", 60)
+        svc.start("camera", str(sequence), "--rate", "2")
+        resumed = []
+
+        def restart(count: int) -> None:
+            if count == 18 and not resumed:
+                mapper.send_signal(signal.SIGKILL)
+                mapper.wait()
+                svc.maps.drain()
+                # Its own checkpoints only at exit: what is on disk after SIGTERM is its flush.
+                later = ["--checkpoint", str(ckpt), "--checkpoint-every", "1000"]
+                resumed.append(svc.start("mapper", "--resume", str(ckpt), *later))
+
+        seen = _poses_until_end(svc.poses, restart)
+        assert set(seen) == set(range(FRAMES))
+        log = svc.log("mapper")
+        assert "resumed from" in log and "continuing the tracker's map" not in log
+        assert "the new mapper has no map" not in svc.log("tracker")
+        snap = svc.maps.get(120)
+        assert snap is not None, "the resumed mapper published no snapshot"
+        assert resumed[0].poll() is None
+        resumed[0].send_signal(signal.SIGTERM)
+        assert resumed[0].wait(60) == 0
+    checkpoint = MapperCheckpoint.from_bytes((ckpt / "checkpoint.msgpack").read_bytes())
+    assert max(seq for seq, _ in checkpoint.frames) == FRAMES - 1
+    assert checkpoint.snapshot.version > 1 and checkpoint.rounds > 1
+    assert set(checkpoint.snapshot.keyframes) <= {
+        f.seq for b in checkpoint.images for f in b.frames
+    }
+
+
+def test_a_mapper_refuses_a_checkpoint_it_cannot_use(tmp_path, capsys):
+    from dimslam.mapper.cli import main as mapper_main
+
+    (tmp_path / "checkpoint.msgpack").write_bytes(b"\x93not a checkpoint")
+    args = ["--resume", str(tmp_path), "--session", f"bad{os.getpid()}", "--preset", "tiny"]
+    assert mapper_main(args) == 2
+    assert "checkpoint.msgpack is not a checkpoint" in capsys.readouterr().err
+    assert mapper_main(["--resume", str(tmp_path / "none"), *args[2:]]) == 2
+    assert "cannot read checkpoint.msgpack" in capsys.readouterr().err
 
 
 def test_a_late_tracker_continues_the_running_map(sequence, tmp_path):

@@ -246,7 +246,11 @@ class TrackerService:
     def _reseed_mapper(self) -> None:
         """A mapper appeared: if it has no map (restarted), give it ours before any batch."""
         self.mapper_appeared.clear()
-        if not self.initialized or self._query("map", 5.0) is not None:
+        if not self.initialized:
+            return
+        held = self._query("map", 5.0)
+        if held is not None:
+            self._follow_resumed(held)
             return
         assert self.camera is not None
         keyframes = [f for f in self.frames if f.keyframe and f.rgb is not None]
@@ -260,6 +264,23 @@ class TrackerService:
         self.outbox[:0] = [snap.to_bytes(), batch.to_bytes()]
         self.round += 1
         log.info("the new mapper has no map: sending map version %d", self.map_version)
+
+    def _follow_resumed(self, payload: bytes) -> None:
+        """The new mapper has a map of its own (resumed from a checkpoint): its versions count
+        from there, and may be behind this tracker's; take its next snapshots all the same."""
+        try:
+            version = MapSnapshot.from_bytes(payload).version
+        except MessageError as e:
+            self.rejects("query/map", e)
+            return
+        if version < self.map_version:
+            log.info(
+                "the mapper resumed map version %d (this tracker had %d): its maps are taken "
+                "from there",
+                version,
+                self.map_version,
+            )
+            self.map_version = version
 
     # -- main loop --------------------------------------------------------------------------
 

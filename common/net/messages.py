@@ -477,3 +477,54 @@ class MapSnapshot(Message):
             tuple(keyframes),
             _count(body, "stamp_ns"),
         )
+
+
+@dataclass(frozen=True, eq=False)
+class MapperCheckpoint(Message):
+    """A mapper's state on disk, to resume from (`dimslam-mapper --checkpoint/--resume`).
+
+    Attributes:
+        snapshot: the map, the final pose of every frame held (keyframes as refined, others
+            re-anchored to their keyframe), and the keyframe numbers.
+        frames: `(seq, timestamp)` of every frame held, oldest first.
+        images: the frames that still hold their image, in batches of at most
+            `MAX_BATCH_FRAMES` (their poses and keyframe flags as the mapper holds them).
+        rounds: mapping rounds run so far.
+    """
+
+    TYPE: ClassVar[str] = "checkpoint"
+    snapshot: MapSnapshot
+    frames: tuple[tuple[int, float], ...]
+    images: tuple[MappingBatch, ...]
+    rounds: int
+    stamp_ns: int = field(default_factory=now_ns)
+
+    def _body(self) -> dict:
+        return {
+            "snapshot": self.snapshot.to_bytes(),
+            "frames": [[seq, ts] for seq, ts in self.frames],
+            "images": [b.to_bytes() for b in self.images],
+            "rounds": self.rounds,
+            "stamp_ns": self.stamp_ns,
+        }
+
+    @classmethod
+    def _parse(cls, body: dict) -> MapperCheckpoint:
+        snapshot = MapSnapshot.from_bytes(_get(body, "snapshot", bytes))
+        frames = []
+        for i, item in enumerate(_get(body, "frames", list)):
+            if not (isinstance(item, list) and len(item) == 2):
+                raise MessageError(f"frames[{i}]: expected [seq, timestamp]")
+            seq, ts = item
+            if type(seq) is not int or seq < 0 or type(ts) is not float or not np.isfinite(ts):
+                raise MessageError(f"frames[{i}]: expected [seq, timestamp]")
+            if seq not in snapshot.poses:
+                raise MessageError(f"frames[{i}]: frame {seq} has no pose in the snapshot")
+            frames.append((seq, ts))
+        images = tuple(MappingBatch.from_bytes(b) for b in _get(body, "images", list))
+        cameras = {b.camera for b in images}
+        if len(cameras) > 1:
+            raise MessageError("images: batches of different cameras")
+        return cls(
+            snapshot, tuple(frames), images, _count(body, "rounds"), _count(body, "stamp_ns")
+        )

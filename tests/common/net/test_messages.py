@@ -22,6 +22,7 @@ from dimslam.common.net import messages
 from dimslam.common.net.messages import (
     EndOfStream,
     FrameMessage,
+    MapperCheckpoint,
     MappingBatch,
     MappingFrame,
     MapSnapshot,
@@ -42,6 +43,7 @@ DECODERS = {
     "pose": PoseMessage.from_bytes,
     "mapping": MappingBatch.from_bytes,
     "map": MapSnapshot.from_bytes,
+    "checkpoint": MapperCheckpoint.from_bytes,
     "message_type": message_type,
 }
 
@@ -63,29 +65,32 @@ def _T(seed: int) -> np.ndarray:
 def _examples() -> list[messages.Message]:
     """One small valid message of every type (small so that every prefix can be tried)."""
     rng = np.random.default_rng(1)
+    batch = MappingBatch(
+        1,
+        tuple(MappingFrame(s, 0.1 * s, _rgb(s), _T(s), s % 2 == 0) for s in (5, 6)),
+        CAM,
+        stamp_ns=1,
+    )
+    snapshot = MapSnapshot(
+        2,
+        1,
+        "abc123",
+        {
+            "grid.0": rng.normal(size=(2, 3, 4)).astype(np.float32),
+            "decoder.weight": rng.normal(size=(5,)).astype(np.float32),
+        },
+        {0: _T(0), 5: _T(5)},
+        (0, 5),
+        stamp_ns=2,
+    )
     return [
         FrameMessage(3, 12.5, _rgb(0), CAM, live=True, stamp_ns=123),
         EndOfStream(17, stamp_ns=456),
         PoseMessage(4, 1.25, _T(0), keyframe=True, map_version=2, stamp_ns=789),
-        MappingBatch(
-            1,
-            tuple(MappingFrame(s, 0.1 * s, _rgb(s), _T(s), s % 2 == 0) for s in (5, 6)),
-            CAM,
-            stamp_ns=1,
-        ),
-        MapSnapshot(
-            2,
-            1,
-            "abc123",
-            {
-                "grid.0": rng.normal(size=(2, 3, 4)).astype(np.float32),
-                "decoder.weight": rng.normal(size=(5,)).astype(np.float32),
-            },
-            {0: _T(0), 5: _T(5)},
-            (0, 5),
-            stamp_ns=2,
-        ),
+        batch,
+        snapshot,
         PoseMessage(5, 1.5, None, map_version=2, stamp_ns=790, lost=True),
+        MapperCheckpoint(snapshot, ((0, 0.0), (5, 0.5)), (batch,), 3, stamp_ns=3),
     ]
 
 
@@ -533,3 +538,10 @@ def test_corrupted_nested_arrays_only_raise_message_error(data):
     part = data.draw(st.sampled_from(["dtype", "shape", "data"]))
     target[part] = data.draw(_array_like)[part]
     _decode_everywhere(_pack(body))
+
+
+def test_a_checkpoint_names_only_frames_its_snapshot_has_a_pose_for():
+    example = _examples()[-1]
+    orphan = MapperCheckpoint(example.snapshot, ((0, 0.0), (7, 0.7)), example.images, 3)
+    with pytest.raises(MessageError, match="frame 7 has no pose"):
+        MapperCheckpoint.from_bytes(orphan.to_bytes())
