@@ -67,8 +67,13 @@ class BackEnd:
         return [f for f in self.frames if f.keyframe]
 
     def add(self, frames: list[FrameState]) -> None:
-        """Frames handed over by the tracker (newest last), at their tracked poses."""
-        self.frames.extend(frames)
+        """Frames handed over by the tracker (newest last), at their tracked poses; a frame
+        already held is not taken twice (a tracker sends again what a mapper may have lost)."""
+        held = {f.index for f in self.frames}
+        new = [f for f in frames if f.index not in held]
+        if len(new) < len(frames):
+            log.info("%d frames received again, already held", len(frames) - len(new))
+        self.frames.extend(new)
 
     def step(self) -> MapRound:
         """Initialize on the frames held, or run a mapping round on the newest of them.

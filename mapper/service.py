@@ -110,6 +110,7 @@ class MapperService:
         self.version = 0
         self.ended = False
         self.snapshot_bytes: bytes | None = None
+        self.last_round = 0  # the newest mapping batch mapped (the snapshots' `round`)
         self.seed: MapSnapshot | None = None
         self.rejects = Rejects()
         self.backlog: list[MappingBatch] = []  # received, not yet mapped
@@ -309,6 +310,7 @@ class MapperService:
     def _publish(self, round_: int, window: list[FrameState]) -> None:
         assert self.back is not None
         self.version += 1
+        self.last_round = round_
         keyframes = self.keyframes
         refined = {f.index: f for f in [*keyframes, *window]}
         snap = to_snapshot(
@@ -340,7 +342,7 @@ class MapperService:
         poses = {f.index: pose_array(back.final_pose(f)) for f in back.frames}
         snap = MapSnapshot(
             self.version,
-            self.rounds,
+            self.last_round,
             self.digest,
             {k: v.detach().cpu().numpy() for k, v in back.field.state_dict().items()},
             poses,
@@ -404,6 +406,7 @@ class MapperService:
         back.rounds = ckpt.rounds
         back.reanchor()
         self.version = snap.version
+        self.last_round = snap.round
         self.snapshot_bytes = snap.to_bytes()
         log.info(
             "resumed from %s: map version %d, %d frames (%d keyframes), %d rounds",

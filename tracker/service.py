@@ -159,6 +159,8 @@ class TrackerService:
         self.front: FrontEnd | None = None  # once the first frame gives the camera
         self.online: dict[int, tuple[float, np.ndarray]] = {}
         self.outbox: list[bytes] = []
+        # Batches sent that no snapshot covers yet, by round: a resumed mapper gets them again.
+        self.unmapped: dict[int, bytes] = {}
         self.map_version = 0
         self.map_round = -1
         self.round = 0
@@ -267,20 +269,26 @@ class TrackerService:
 
     def _follow_resumed(self, payload: bytes) -> None:
         """The new mapper has a map of its own (resumed from a checkpoint): its versions count
-        from there, and may be behind this tracker's; take its next snapshots all the same."""
+        from there, and may be behind this tracker's; take its next snapshots all the same,
+        and send it again every batch its checkpoint does not cover."""
         try:
-            version = MapSnapshot.from_bytes(payload).version
+            snap = MapSnapshot.from_bytes(payload)
         except MessageError as e:
             self.rejects("query/map", e)
             return
-        if version < self.map_version:
+        if snap.version < self.map_version:
             log.info(
                 "the mapper resumed map version %d (this tracker had %d): its maps are taken "
                 "from there",
-                version,
+                snap.version,
                 self.map_version,
             )
-            self.map_version = version
+            self.map_version = snap.version
+        self.map_round = min(self.map_round, snap.round)
+        again = [p for r, p in sorted(self.unmapped.items()) if r > snap.round]
+        if again:
+            log.info("sending the resumed mapper %d batches its checkpoint lacks", len(again))
+        self.outbox = again  # what the outbox held is among them
 
     # -- main loop --------------------------------------------------------------------------
 
@@ -410,7 +418,9 @@ class TrackerService:
 
     def _send_batch(self, frames: list[FrameState]) -> None:
         assert self.camera is not None
-        self.outbox.append(to_batch(frames, self.round, self.camera).to_bytes())
+        payload = to_batch(frames, self.round, self.camera).to_bytes()
+        self.outbox.append(payload)
+        self.unmapped[self.round] = payload
         self.round += 1
         self._flush_outbox()
 
@@ -449,6 +459,8 @@ class TrackerService:
             self.stats.refresh_seconds.append(time.perf_counter() - started)
         self.map_version = snap.version
         self.map_round = snap.round
+        for covered in [r for r in self.unmapped if r <= snap.round]:
+            del self.unmapped[covered]
         self.stats.snapshots += 1
         log.debug("map version %d (round %d) swapped in", snap.version, snap.round)
         if first:

@@ -22,7 +22,7 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import zenoh
 
@@ -124,6 +124,14 @@ def _camera_options(p: argparse.ArgumentParser) -> None:
         help="send at once instead of waiting for a subscribed tracker (datasets and videos)",
     )
     g.add_argument(
+        "--grace",
+        type=positive_seconds,
+        default=10.0,
+        metavar="S",
+        help="when the tracker goes away mid-stream, wait S seconds for one to come back "
+        "(a restarted tracker, a router back up) before ending the stream (default: 10)",
+    )
+    g.add_argument(
         "--also-wait-for",
         action="append",
         default=[],
@@ -146,6 +154,7 @@ class _PoseMark:
     def __init__(self, topic: str) -> None:
         self.topic = topic
         self.highest = -1
+        self.last_sent = -1
         self.ended = False
         self.ended_early = False  # the tracker ended while frames were held back for it
         self.rejects = Rejects()
@@ -164,6 +173,13 @@ class _PoseMark:
             self.ended = self.ended or kind == EndOfStream.TYPE
             if seq is not None:
                 self.highest = max(self.highest, seq)
+            self._cond.notify_all()
+
+    def forget_pending(self) -> None:
+        """A new tracker: the frames sent to the one before will get no pose; stop waiting
+        for them (lockstep would otherwise wait forever)."""
+        with self._cond:
+            self.highest = max(self.highest, self.last_sent)
             self._cond.notify_all()
 
     def wait_until(self, seq: int, ahead: int, stop: Stop) -> bool:
@@ -243,8 +259,13 @@ def _stream(
     args: argparse.Namespace,
     stop: Stop,
     mark: _PoseMark,
+    tracker_ready: Callable[[], bool],
 ) -> int:
-    """Send the source's frames until it ends, `--max-frames`, or a stop; returns how many."""
+    """Send the source's frames until it ends, `--max-frames`, or a stop; returns how many.
+
+    A frame that waits for the tracker (lockstep, or a replay until the map exists) also
+    waits, up to `--grace`, while no tracker is there to take it (`tracker_ready`): a frame
+    put with nobody subscribed is lost."""
     # A camera device paces itself; waiting on its wall-clock stamps would only add latency.
     pacer = _Pacer(args.rate if args.rate is not None else 0.0 if device else None)
     camera = reader.camera
@@ -261,13 +282,14 @@ def _stream(
     replayed = live and not device
     for frame in reader:
         gated = args.lockstep or (replayed and mark.highest < 0)
-        if stop or (gated and not mark.wait_until(sent, args.ahead, stop)):
+        if stop or (gated and not (mark.wait_until(sent, args.ahead, stop) and tracker_ready())):
             break
         if stop.event.wait(pacer.delay(frame.timestamp)):
             break
         # Held frames are not live: the tracker must not skip one of its initialization's.
         message = FrameMessage(sent, frame.timestamp, frame.rgb, camera, live=live and not gated)
         pub.put(message.to_bytes())
+        mark.last_sent = sent
         sent += 1
         bar.update(sent, tracked=mark.highest + 1)
         if sent == args.max_frames:
@@ -284,12 +306,31 @@ def run_camera(args: argparse.Namespace) -> int:
     changed = threading.Event()
     tracker_lost = threading.Event()
 
+    grace: list[threading.Timer] = []
+
+    def give_up() -> None:
+        if not presence.alive("tracker"):
+            tracker_lost.set()
+            stop.set("the tracker went away")
+
     def on_peer(role: str, alive: bool) -> None:
         log_peer(role, alive)
         changed.set()
-        if role == "tracker" and not alive and watch_tracker.is_set():
-            tracker_lost.set()
-            stop.set("the tracker went away")
+        if role != "tracker" or not watch_tracker.is_set():
+            return
+        if alive and grace:
+            log.info("a tracker is back")
+            mark.forget_pending()
+        for timer in grace:  # a tracker is back (or another token changed): start afresh
+            timer.cancel()
+        grace.clear()
+        if not alive:
+            # A restarted tracker (it continues the running map) or a router that came back
+            # within the grace keeps the stream going; frames sent meanwhile are lost to it.
+            log.warning("the tracker went away: waiting %g s for it to come back", args.grace)
+            grace.append(threading.Timer(args.grace, give_up))
+            grace[0].daemon = True
+            grace[0].start()
 
     watch_tracker = threading.Event()  # set once a tracker was waited for
     with (
@@ -323,7 +364,13 @@ def run_camera(args: argparse.Namespace) -> int:
                     f"{args.wait_timeout:g} s: start dimslam-tracker with the same --session "
                     "and endpoints, or pass --no-wait"
                 )
-        sent = 0 if stop else _stream(reader, device, live, pub, args, stop, mark)
+
+        def tracker_ready() -> bool:
+            if presence.alive("tracker") and pub.matching_status.matching:
+                return True
+            return _wait_for_tracker(pub, presence, changed, stop, args.grace)
+
+        sent = 0 if stop else _stream(reader, device, live, pub, args, stop, mark, tracker_ready)
         # A tracker that leaves after the last frame has simply finished.
         watch_tracker.clear()
         end = EndOfStream(sent).to_bytes()

@@ -41,9 +41,9 @@ BIN = Path(sys.executable).parent
 class TrackerSide:
     """The tracker's end of the protocol, played by the test on its own listening endpoint."""
 
-    def __init__(self) -> None:
-        self.name = f"test{uuid.uuid4().hex[:12]}"
-        self.endpoint = loopback_endpoints(1)[0]
+    def __init__(self, name: str | None = None, endpoint: str | None = None) -> None:
+        self.name = name or f"test{uuid.uuid4().hex[:12]}"
+        self.endpoint = endpoint or loopback_endpoints(1)[0]
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("scouting/multicast/enabled", "false")
@@ -197,7 +197,7 @@ def test_sigterm_stops_the_camera_with_an_end_of_stream(scene, tracker, start):
 
 
 def test_camera_stops_when_the_tracker_goes_away(scene, tracker, start):
-    camera = start("dimslam-camera", str(scene), *tracker.args(), "--rate", "2")
+    camera = start("dimslam-camera", str(scene), *tracker.args(), "--rate", "2", "--grace", "1")
     assert tracker.next_frame().seq == 0
     tracker.close()  # its liveliness token vanishes with the session
     code, _, err = _finish(camera)
@@ -336,3 +336,33 @@ def test_camera_waits_for_the_roles_it_is_told_to(scene, tracker, start):
     code, _, err = _finish(camera)
     assert code == 2 and "no viewer connected" in err
     assert tracker.frames.get(0.1) is None  # nothing was sent
+
+
+def test_camera_holds_its_frames_for_a_tracker_that_comes_back(scene, tracker, start):
+    """A restarted tracker (same session and endpoint) within `--grace`: the stream goes on
+    where it was, and no frame is sent while nobody is there to take it."""
+    camera = start(
+        "dimslam-camera", str(scene), *tracker.args(), "--lockstep", "--ahead", "2",
+        "--rate", "0", "--grace", "60",
+    )  # fmt: skip
+    first = [tracker.next_frame().seq for _ in range(2)]
+    tracker.publish_pose(1)
+    assert tracker.next_frame().seq == 2
+    tracker.close()  # its token vanishes: the camera waits instead of ending the stream
+    back = TrackerSide(tracker.name, tracker.endpoint)
+    try:
+        nxt = back.next_frame()
+        assert first == [0, 1] and isinstance(nxt, FrameMessage) and nxt.seq in (3, 4)
+        seqs = [nxt.seq]
+        while True:
+            back.publish_pose(seqs[-1])
+            msg = back.next_frame()
+            if isinstance(msg, EndOfStream):
+                break
+            seqs.append(msg.seq)
+        assert seqs == list(range(seqs[0], FRAMES))  # in order, to the end
+        code, _, err = _finish(camera)
+        assert code == 0, err
+        assert "waiting 60 s for it to come back" in err
+    finally:
+        back.close()
