@@ -243,26 +243,43 @@ def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace
     return result
 
 
+def _median(values: list) -> float | None:
+    values = [v for v in values if v is not None]
+    return float(np.median(values)) if values else None
+
+
 def table(results: list[dict]) -> str:
-    clean = next((r for r in results if r["scenario"] == "clean"), None)
+    """One row per scenario; with repeats, medians (ATE also its range) over the runs."""
+    by_scenario: dict[str, list[dict]] = {}
+    for r in results:
+        by_scenario.setdefault(r["scenario"], []).append(r)
+    clean = _median([r.get("ate_m") for r in by_scenario.get("clean", [])])
     rows = [
-        "| scenario | posed / frames | lost | missing (after recovery) | longest pose gap | "
-        "poses again | maps again | resumed | final frames | ATE | ATE / clean |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scenario | runs | posed / frames | lost | missing (after recovery) | longest pose gap "
+        "| poses again | maps again | resumed | final frames | ATE (range) | ATE / clean |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def s(v, fmt="{:.1f} s"):
         return "-" if v is None else fmt.format(v)
 
-    for r in results:
-        ate = r.get("ate_m")
-        ratio = ate / clean["ate_m"] if ate and clean and clean.get("ate_m") else None
+    def med(runs: list[dict], key: str):
+        return _median([r.get(key) for r in runs])
+
+    for name, runs in by_scenario.items():
+        ates = [r["ate_m"] for r in runs if r.get("ate_m") is not None]
+        ate = _median(ates)
+        spread = f" ({100 * min(ates):.2f}-{100 * max(ates):.2f})" if len(ates) > 1 else ""
+        ratio = ate / clean if ate and clean else None
+        resumed = sum(r["resumed_from_checkpoint"] for r in runs)
         rows.append(
-            f"| {r['scenario']} | {r['posed']} / {r['frames']} | {r['lost']} | {r['missing']} "
-            f"({r.get('missing_after', 0)}) | {r['max_pose_gap_s']:.1f} s | "
-            f"{s(r.get('poses_again_s'))} | {s(r.get('maps_again_s'))} | "
-            f"{'yes' if r['resumed_from_checkpoint'] else 'no'} | {r.get('final_frames', '-')} | "
-            f"{s(None if ate is None else 100 * ate, '{:.2f} cm')} | {s(ratio, '{:.2f}')} |"
+            f"| {name} | {len(runs)} | {s(med(runs, 'posed'), '{:.0f}')} / {runs[0]['frames']} "
+            f"| {s(med(runs, 'lost'), '{:.0f}')} | {s(med(runs, 'missing'), '{:.0f}')} "
+            f"({s(med(runs, 'missing_after'), '{:.0f}')}) | {s(med(runs, 'max_pose_gap_s'))} "
+            f"| {s(med(runs, 'poses_again_s'))} | {s(med(runs, 'maps_again_s'))} "
+            f"| {resumed} of {len(runs)} | {s(med(runs, 'final_frames'), '{:.0f}')} "
+            f"| {s(None if ate is None else 100 * ate, '{:.2f} cm')}{spread} "
+            f"| {s(ratio, '{:.2f}')} |"
         )
     return "\n".join(rows)
 
@@ -275,6 +292,9 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=4.0, help="camera frames per second")
     parser.add_argument("--at", type=int, default=25, help="poses received before the fault")
     parser.add_argument("--cut", type=float, default=5.0, help="link-cut: seconds of outage")
+    parser.add_argument(
+        "--repeats", type=int, default=1, help="runs of every scenario (medians reported)"
+    )
     parser.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated")
     parser.add_argument("--out", type=Path, default=Path("out/faults"))
     parser.add_argument("--json", type=Path, help="write the figures as JSON")
@@ -287,10 +307,11 @@ def main() -> int:
     if not (scene / "rgb.txt").is_file():
         write_sequence(scene, frames=args.frames, width=160, height=120, seed=0)
     results = []
-    for scenario in chosen:
-        print(f"{scenario} ...", flush=True)
-        results.append(run_scenario(scenario, scene, args.out, args))
-        print(json.dumps(results[-1]), flush=True)
+    for repeat in range(args.repeats):
+        for scenario in chosen:
+            print(f"{scenario} ({repeat + 1} of {args.repeats}) ...", flush=True)
+            results.append(run_scenario(scenario, scene, args.out / f"run{repeat}", args))
+            print(json.dumps(results[-1]), flush=True)
     print(table(results))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
