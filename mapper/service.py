@@ -395,13 +395,14 @@ class MapperService:
         back = self.back
         assert back is not None
         load_map(back.field, snap)
-        images = {f.seq: f for b in ckpt.images for f in b.frames}
+        with_images = {f.index: f for b in ckpt.images for f in from_batch(b, self.device)}
         keyframes = set(snap.keyframes)
         for seq, timestamp in ckpt.frames:
-            item = images.get(seq)
-            rgb = None if item is None else torch.from_numpy(item.rgb).to(self.device) / 255.0
-            T_wc = pose_tensor(item.T_wc if item is not None else snap.poses[seq], self.device)
-            back.frames.append(FrameState(seq, timestamp, rgb, T_wc, seq in keyframes))
+            frame = with_images.get(seq) or FrameState(
+                seq, timestamp, None, pose_tensor(snap.poses[seq], self.device)
+            )
+            frame.keyframe = seq in keyframes
+            back.frames.append(frame)
         back.initialized = True
         back.rounds = ckpt.rounds
         back.reanchor()

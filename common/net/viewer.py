@@ -306,12 +306,12 @@ class Viewer:
         keyframes = [k for k in snap.keyframes if k in snap.poses]
         if keyframes and self.camera is not None:
             newest = max(keyframes)
-            T_wc = torch.from_numpy(snap.poses[newest]).float()
+            T_wc = torch.from_numpy(snap.poses[newest]).float().to(self.field.bound.device)
             camera = self.camera.resized(DEPTH_WIDTH)
             depth, _ = render_image(self.field, camera, T_wc, self.cfg.render)
             pose = self.track.get(newest)
             self._at(newest, pose.timestamp if pose is not None else 0.0)
-            self.rec.log("keyframe/depth", self.rr.DepthImage(depth.numpy(), meter=1.0))
+            self.rec.log("keyframe/depth", self.rr.DepthImage(depth.cpu().numpy(), meter=1.0))
         if self.args.mesh_every and self.snapshots % self.args.mesh_every == 0:
             self._mesh()
 
