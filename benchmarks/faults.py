@@ -204,7 +204,7 @@ def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace
                 sub.undeclare()
     finally:
         h.stop_all()
-    received = {t: v for t, v in h.poses.items()}
+    received = h.poses
     posed = {t for t, v in received.items() if any(not lost for _, lost in v)}
     lost = {t for t, v in received.items() if all(lost for _, lost in v)}
     all_ts = {round(float(t), 6) for t in gt}

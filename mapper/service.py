@@ -339,14 +339,14 @@ class MapperService:
         if self.back is None or not self.back.initialized or self.camera is None:
             return
         back = self.back
-        poses = {f.index: pose_array(back.final_pose(f)) for f in back.frames}
-        snap = MapSnapshot(
+        snap = to_snapshot(
             self.version,
             self.last_round,
             self.digest,
-            {k: v.detach().cpu().numpy() for k, v in back.field.state_dict().items()},
-            poses,
-            tuple(f.index for f in back.keyframes),
+            back.field,
+            back.frames,
+            back.keyframes,
+            pose=back.final_pose,
         )
         held = [f for f in back.frames if f.rgb is not None]
         images = tuple(

@@ -160,7 +160,7 @@ class TrackerService:
         self.online: dict[int, tuple[float, np.ndarray]] = {}
         self.outbox: list[bytes] = []
         # Batches sent that no snapshot covers yet, by round: a resumed mapper gets them again.
-        self.unmapped: dict[int, bytes] = {}
+        self.uncovered: dict[int, bytes] = {}
         self.map_version = 0
         self.map_round = -1
         self.round = 0
@@ -285,7 +285,7 @@ class TrackerService:
             )
             self.map_version = snap.version
         self.map_round = min(self.map_round, snap.round)
-        again = [p for r, p in sorted(self.unmapped.items()) if r > snap.round]
+        again = [p for r, p in sorted(self.uncovered.items()) if r > snap.round]
         if again:
             log.info("sending the resumed mapper %d batches its checkpoint lacks", len(again))
         self.outbox = again  # what the outbox held is among them
@@ -420,7 +420,7 @@ class TrackerService:
         assert self.camera is not None
         payload = to_batch(frames, self.round, self.camera).to_bytes()
         self.outbox.append(payload)
-        self.unmapped[self.round] = payload
+        self.uncovered[self.round] = payload
         self.round += 1
         self._flush_outbox()
 
@@ -459,8 +459,8 @@ class TrackerService:
             self.stats.refresh_seconds.append(time.perf_counter() - started)
         self.map_version = snap.version
         self.map_round = snap.round
-        for covered in [r for r in self.unmapped if r <= snap.round]:
-            del self.unmapped[covered]
+        for covered in [r for r in self.uncovered if r <= snap.round]:
+            del self.uncovered[covered]
         self.stats.snapshots += 1
         log.debug("map version %d (round %d) swapped in", snap.version, snap.round)
         if first:

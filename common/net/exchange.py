@@ -6,7 +6,7 @@ poses into a `MapSnapshot` and back, so both service processes convert the same 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
@@ -65,14 +65,16 @@ def to_snapshot(
     field: torch.nn.Module,
     posed: Iterable[FrameState],
     keyframes: Iterable[FrameState],
+    pose: Callable[[FrameState], torch.Tensor] = lambda f: f.T_wc,
 ) -> MapSnapshot:
-    """The map's tensors, the current poses of `posed` and the keyframe numbers."""
+    """The map's tensors, the poses of `posed` (`pose`: the current ones by default) and the
+    keyframe numbers."""
     return MapSnapshot(
         version,
         round_,
         digest,
         {k: v.detach().cpu().numpy() for k, v in field.state_dict().items()},
-        {f.index: pose_array(f.T_wc) for f in posed},
+        {f.index: pose_array(pose(f)) for f in posed},
         tuple(f.index for f in keyframes),
     )
 

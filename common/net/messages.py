@@ -167,6 +167,13 @@ def message_type(payload: bytes) -> str:
     return _decode(payload)["type"]
 
 
+def decode_or_end(payload: bytes, kind: type[M]) -> M | EndOfStream:
+    """A `kind` message or the end of the stream; `MessageError` for anything else."""
+    if message_type(payload) == EndOfStream.TYPE:
+        return EndOfStream.from_bytes(payload)
+    return kind.from_bytes(payload)
+
+
 M = TypeVar("M", bound="Message")
 
 
@@ -320,6 +327,12 @@ class PoseMessage(Message):
     def status(self) -> str:
         """ "lost" or "tracked"."""
         return "lost" if self.lost else "tracked"
+
+    def supersedes(self, kept: PoseMessage | None) -> bool:
+        """Whether this pose replaces `kept`, the one held for the same frame: refinements and
+        tracked poses race on two topics, so the newer map decides, not the order of arrival;
+        for one map the last received wins. A lost frame replaces nothing."""
+        return not self.lost and (kept is None or self.map_version >= kept.map_version)
 
     def _body(self) -> dict:
         return {

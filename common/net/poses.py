@@ -26,7 +26,7 @@ from dimslam.common.net.messages import (
     EndOfStream,
     MessageError,
     PoseMessage,
-    message_type,
+    decode_or_end,
 )
 from dimslam.common.net.ros2 import Ros2Bridge, Ros2Topics, topic_key
 from dimslam.common.net.service import (
@@ -122,13 +122,6 @@ def _poses_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _decode(payload: bytes) -> PoseMessage | EndOfStream:
-    """A pose or the end of the stream; `MessageError` for anything else."""
-    if message_type(payload) == EndOfStream.TYPE:
-        return EndOfStream.from_bytes(payload)
-    return PoseMessage.from_bytes(payload)
-
-
 def _format(msg: PoseMessage, as_json: bool, refined: bool) -> str:
     """A JSON line, or a TUM line (a lost frame: a `#` comment line, which TUM readers skip)."""
     if as_json:
@@ -188,7 +181,7 @@ def _receive(
     def take(topic: str, payload: bytes) -> None:
         nonlocal ended, last, tracked, refinements
         try:
-            msg = _decode(payload)
+            msg = decode_or_end(payload, PoseMessage)
         except MessageError as e:
             rejects(topic, e)
             return
@@ -200,10 +193,7 @@ def _receive(
         last = time.monotonic()
         if bridge is not None and topic == keys.poses:
             bridge.pose(msg)
-        # Refinements and tracked poses race on two topics: the newer map decides, not the
-        # order of arrival; for one map the last pose received wins.
-        kept = latest.get(msg.seq)
-        if not msg.lost and (kept is None or msg.map_version >= kept.map_version):
+        if msg.supersedes(latest.get(msg.seq)):
             latest[msg.seq] = msg
         if topic == keys.poses or args.keyframes:
             _emit(_format(msg, args.json, refined=topic == keys.keyframes), stop)

@@ -53,7 +53,7 @@ from dimslam.common.net.messages import (
     MapSnapshot,
     MessageError,
     PoseMessage,
-    message_type,
+    decode_or_end,
 )
 from dimslam.common.net.service import (
     TICK_S,
@@ -229,9 +229,7 @@ class Viewer:
 
     def _decode(self, topic: str, payload: bytes, kind):
         try:
-            if message_type(payload) == EndOfStream.TYPE:
-                return EndOfStream.from_bytes(payload)
-            return kind.from_bytes(payload)
+            return decode_or_end(payload, kind)
         except MessageError as e:
             self.rejects(topic, e)
             return None
@@ -261,10 +259,7 @@ class Viewer:
 
     def _pose(self, msg: PoseMessage, refined: bool = False) -> None:
         """A tracked pose moves the camera; a refined one (an older keyframe) only the path."""
-        if msg.lost:
-            return
-        kept = self.track.get(msg.seq)
-        if kept is not None and msg.map_version < kept.map_version:
+        if not msg.supersedes(self.track.get(msg.seq)):
             return
         self.track[msg.seq] = msg
         rr = self.rr
