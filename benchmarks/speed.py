@@ -12,10 +12,14 @@ given. Tracking: a map initialized on the first frames (the preset's initializat
 `--track-init-iters`) and held fixed,
 then `--track-frames` frames tracked by the preset's solver, the whole step timed per frame
 (p50, p95), and the first `--adam-frames` of them also by the Adam window tracker from the same
-guess (`track_ms_p50_adam`, `track_speedup` = its p50 over the solver's). Mapping: the system is
+guess (`track_ms_p50_adam`, `track_speedup` = its p50 over the solver's). Mapping, for the
+sparse map (`map_*`) and the dense one (`map_*_dense`) in turn: the system is
 initialized cheaply (`--init-iters`; accuracy is not the point), its frames all become
 keyframes so that keyframes join the windows, and each `Mapper.map` call (at most `--max-iters`
-iterations) is timed and divided by the iterations it ran; medians over `--repeats`. The
+iterations) is timed and divided by the iterations it ran; medians over `--repeats`;
+`map_samples_per_s` counts the ray samples evaluated with gradients (forward, backward and
+optimizer step), `map_speedup` is the sparse map's over the dense one's, `map_mb` the stored
+grid cells and decoder after those rounds. The
 preset's own initialization time is estimated from the per-iteration times. Full run:
 `Slam.add` over `--frames` frames with the preset as it is except for the cheap initialization
 (`--full-init` keeps the preset's: 600 iterations of the cpu preset take minutes on a CPU);
@@ -266,6 +270,18 @@ def full_run(
     }
 
 
+def samples_per_iteration(cfg: SlamConfig) -> int:
+    """Ray samples a mapping iteration evaluates with gradients: the pixels' and the
+    smoothness blocks' rays, each with its stratified and importance samples."""
+    rays = cfg.mapper.pixels + 4 * (cfg.loss.smooth_blocks if cfg.loss.smooth_weight > 0 else 0)
+    r = cfg.render
+    return rays * (r.n_stratified + r.n_importance * r.importance_rounds)
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a and b else None
+
+
 def init_iterations(cfg: MapperConfig) -> int:
     """Iterations of a whole initialization: each frame joining, then all together."""
     return cfg.init_grow_iters * (cfg.init_frames - INIT_START + 1) + cfg.init_iters
@@ -294,7 +310,20 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
     count = max(cfg.mapper.init_frames + args.repeats, args.frames if full else 0)
     camera, images = render(cfg, count, args.seed)
     log.info("%s: %dx%d, timing steps", name, camera.width, camera.height)
-    steps = time_steps(apply_overrides(cheap, capped), camera, images, device, args.repeats)
+    steps = {}
+    for grids in ("dense", "sparse"):  # the sparse map's figures keep the plain names
+        timed = apply_overrides(cheap, {**capped, "map.grids": grids})
+        figures = time_steps(timed, camera, images, device, args.repeats)
+        suffix = "_dense" if grids == "dense" else ""
+        steps.update({k + suffix: v for k, v in figures.items() if k.startswith("map_")})
+        if grids == cfg.map.grids:
+            steps.update({k: v for k, v in figures.items() if not k.startswith("map_")})
+        samples = samples_per_iteration(cfg)
+        if figures["map_ms_per_iter"]:
+            steps["map_samples_per_s" + suffix] = samples / figures["map_ms_per_iter"] * 1e3
+    steps["map_speedup"] = _ratio(
+        steps.get("map_samples_per_s"), steps.get("map_samples_per_s_dense")
+    )
     estimate = (
         steps["prior_ms_per_iter"] * cfg.mapper.prior_iters
         + steps["init_ms_per_iter"] * init_iterations(cfg.mapper)
@@ -355,7 +384,8 @@ def table(results: list[dict]) -> str:
 
     rows = [
         "| preset | size | track ms/frame p50 / p95 | Adam p50 | speedup | init ms/it "
-        "| map ms/it | init s (est.) | run fps | fps after init | map MB | peak RSS MB | lost |",
+        "| map ms/it sparse / dense | init s (est.) | run fps | fps after init "
+        "| map MB sparse / dense | peak RSS MB | lost |",
         "|" + "---|" * 13,
     ]
     for r in results:
@@ -368,9 +398,11 @@ def table(results: list[dict]) -> str:
             f"| {num(r['track_ms_p50'])} / {num(r['track_ms_p95'])} "
             f"| {num(r['track_ms_p50_adam'])} | {num(r['track_speedup'], '.0f')}x "
             f"| {num(r['init_ms_per_iter'])} "
-            f"| {num(r['map_ms_per_iter'])} ({r['map_window']}) "
+            f"| {num(r['map_ms_per_iter'])} / {num(r['map_ms_per_iter_dense'])} "
+            f"({r['map_window']}) "
             f"| {num(r['init_seconds_estimate'])} | {num(run.get('fps'), '.2f')} "
-            f"| {num(run.get('tracked_fps'), '.2f')} | {r['map_mb']:.1f} "
+            f"| {num(run.get('tracked_fps'), '.2f')} "
+            f"| {r['map_mb']:.1f} / {r['map_mb_dense']:.1f} "
             f"| {r['peak_rss_mb']:.0f} | {'; '.join(lost) or 'no'} |"
         )
     return "\n".join(rows)

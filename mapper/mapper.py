@@ -12,6 +12,7 @@ newest frame plus the frames since the last round; frame 0 stays fixed) on rando
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -19,8 +20,8 @@ import torch
 
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map import mesh as meshing
-from dimslam.common.map.field import Field, MapConfig
-from dimslam.common.map.render import RenderConfig, render_image, render_pixels
+from dimslam.common.map.field import MapConfig, make_field
+from dimslam.common.map.render import RenderConfig, camera_rays, render_image, render_pixels
 from dimslam.common.optim.objective import LossConfig, WindowLoss
 from dimslam.common.optim.window import (
     FrameState,
@@ -37,6 +38,17 @@ log = logging.getLogger(__name__)
 
 INIT_START = 3
 """Frames that start the initialization together (at identity: close enough to their truth)."""
+
+
+def _learning(method):
+    """The method optimizes the map: its rays may store new cells (`Field.learning`)."""
+
+    @functools.wraps(method)
+    def wrapped(self, *args, **kwargs):
+        with self.field.learning():
+            return method(self, *args, **kwargs)
+
+    return wrapped
 
 
 @dataclass(frozen=True)
@@ -104,9 +116,13 @@ class Mapper:
         self.overlap_pixels = overlap_pixels
         self.camera = camera
         self.generator = generator
-        self.field = Field(map_cfg, device=device)
+        self.field = make_field(map_cfg, device=device)
         self.margin = max(loss_cfg.patch_sizes) // 2
         self._map_optimizer: torch.optim.Optimizer | None = None
+
+    def _adam(self, groups: list[dict]) -> torch.optim.Optimizer:
+        """Adam over `groups`, following the grids when rays store new cells (sparse map)."""
+        return self.field.follow(adam(groups))
 
     def _groups(self, decoder_lr: float, scale: float = 1.0) -> list[dict]:
         groups = [{"params": self.field.grid_parameters(), "lr": self.cfg.grid_lr * scale}]
@@ -120,7 +136,7 @@ class Mapper:
         A kept Adam remembers each parameter's gradient statistics: a voxel whose gradient
         has only been noise moves less, one seen for the first time moves more.
         """
-        optimizer = self._map_optimizer or adam(self._groups(self.cfg.decoder_lr))
+        optimizer = self._map_optimizer or self._adam(self._groups(self.cfg.decoder_lr))
         if self.cfg.keep_adam:
             self._map_optimizer = optimizer
         return optimizer
@@ -140,15 +156,23 @@ class Mapper:
 
         return pixels
 
+    @_learning
     def fit_prior(self, first: FrameState) -> float:
         """Fit the map to a fronto-parallel plane at the gauge depth in front of `first`.
 
         Returns:
             The final mean absolute depth error, map units.
         """
-        optimizer = adam(self._init_groups(10.0))
-        device = self.field.bound.device
+        device = first.T_wc.device
         error = float("nan")
+        # A map that grows where rays look must first hold the plane and the space before it.
+        _, uv = random_pixels(1, 1024, self.camera, 0, self.generator, device)
+        origins, directions = camera_rays(self.camera, uv, first.T_wc)
+        depth = torch.linspace(self.render_cfg.near, 2 * self.cfg.gauge_depth, 64, device=device)
+        with torch.no_grad():
+            points = origins[:, None] + depth[:, None] * directions[:, None]
+            self.field.allocate(points.view(-1, 3))
+        optimizer = self._adam(self._init_groups(10.0))
         for _ in range(self.cfg.prior_iters):
             _, uv = random_pixels(1, 1024, self.camera, 0, self.generator, device)
             out = render_pixels(
@@ -161,6 +185,7 @@ class Mapper:
             error = loss.item()
         return error
 
+    @_learning
     def initialize(self, frames: list[FrameState]) -> MapRound:
         """Joint optimization of the map and the poses of `frames` (frames[0] fixed).
 
@@ -193,7 +218,7 @@ class Mapper:
                 self.cfg.pose_lr,
                 self.loss_cfg,
                 self.render_cfg,
-                map_optimizer=adam(self._init_groups(self.cfg.init_lr_scale)),
+                map_optimizer=self._adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
                 smooth=True,
                 extra_loss=gauge,
@@ -209,6 +234,7 @@ class Mapper:
         frames[0].keyframe = True
         return MapRound(stats, tuple(f.index for f in frames))
 
+    @_learning
     def map(self, recent: list[FrameState], keyframes: list[FrameState]) -> MapRound:
         """One mapping round on the recent frames plus keyframes overlapping the newest."""
         in_recent = {id(f) for f in recent}
@@ -242,6 +268,7 @@ class Mapper:
         )
         return MapRound(stats, tuple(f.index for f in window))
 
+    @_learning
     def post_optimize(self, keyframes: list[FrameState], chunk: int = 20) -> WindowStats | None:
         """Map-only refinement over all keyframes, poses fixed (paper appendix)."""
         stats = None
@@ -273,7 +300,7 @@ class Mapper:
                 0.0,
                 self.loss_cfg,
                 self.render_cfg,
-                map_optimizer=adam(self._groups(0.0)),
+                map_optimizer=self._adam(self._groups(0.0)),
                 generator=self.generator,
                 smooth=True,
                 max_loss=float("inf"),

@@ -37,7 +37,7 @@ import zenoh
 from dimslam.common.config import SlamConfig, map_digest
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory, write_tum
-from dimslam.common.map.field import Field
+from dimslam.common.map.field import make_field
 from dimslam.common.net.exchange import (
     from_batch,
     load_map,
@@ -153,7 +153,7 @@ class TrackerService:
         self.map_lag = map_lag
         self.digest = map_digest(cfg)
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
-        self.field = Field(cfg.map, device=device).requires_grad_(False)
+        self.field = make_field(cfg.map, device=device).requires_grad_(False)
         self.camera: Camera | None = None
         self.source_camera: Camera | None = None
         self.front: FrontEnd | None = None  # once the first frame gives the camera
@@ -450,7 +450,11 @@ class TrackerService:
             return
         if snap.version <= self.map_version:
             return
-        load_map(self.field, snap)
+        try:
+            load_map(self.field, snap)
+        except MessageError as e:
+            self.rejects("map", e)
+            return
         first = not self.initialized
         if self.front is not None:
             self.front.apply_poses(snapshot_poses(snap, self.device), snap.keyframes)

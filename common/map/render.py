@@ -22,6 +22,9 @@ from dimslam.common.geometry.shapes import check_shape
 from dimslam.common.map.field import FieldOutput
 from dimslam.common.options import option
 
+SEEN = 1e-2
+"""Transmittance below which a ray no longer sees: samples beyond it are not `observe`d."""
+
 FieldFn = Callable[..., FieldOutput]
 """A map: `(N, 3)` points (and `with_color=`) -> `FieldOutput` (e.g. `Field`)."""
 
@@ -116,8 +119,10 @@ def sample_depths(
     directions: torch.Tensor,
     cfg: RenderConfig,
     generator: torch.Generator | None = None,
-) -> torch.Tensor:
-    """Sorted sample depths `(R, S)`: stratified plus importance rounds, without gradients."""
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sorted sample depths `(R, S)`: stratified plus importance rounds, without gradients;
+    and how far each ray sees `(R,)`: the depth of the first evaluated sample where the
+    transmittance falls below `SEEN` (beyond it nothing the ray renders can change)."""
     R = origins.shape[0]
     with torch.no_grad():
         steps = torch.arange(cfg.n_stratified, device=origins.device, dtype=origins.dtype)
@@ -132,6 +137,7 @@ def sample_depths(
             )
         t = cfg.near + (cfg.far - cfg.near) * (steps + jitter) / cfg.n_stratified
         occ = _occupancy(field, origins, directions, t)
+        seen_t = t
         for round_ in range(cfg.importance_rounds):
             extra = sample_pdf(t, ray_weights(occ), cfg.n_importance, generator)
             t, order = torch.sort(torch.cat([t, extra], dim=-1), dim=-1)
@@ -139,7 +145,13 @@ def sample_depths(
                 # Only the new samples are evaluated: the earlier ones keep their occupancy.
                 occ_extra = _occupancy(field, origins, directions, extra)
                 occ = torch.cat([occ, occ_extra], dim=-1).gather(1, order)
-    return t
+                seen_t = t
+        transmittance = torch.cumprod(1 - occ, dim=-1)
+        hidden = transmittance < SEEN
+        first = torch.where(hidden.any(dim=-1), hidden.float().argmax(dim=-1), -1)
+        reach = seen_t.gather(1, first[:, None].clamp_min(0))[:, 0]
+        reach = torch.where(first >= 0, reach, torch.full_like(reach, cfg.far))
+    return t, reach
 
 
 def _occupancy(
@@ -171,9 +183,12 @@ def render_rays(
     """
     check_shape("origins", origins, (None, 3))
     check_shape("directions", directions, (origins.shape[0], 3))
-    t = sample_depths(field, origins, directions, cfg, generator)
+    t, reach = sample_depths(field, origins, directions, cfg, generator)
     R, S = t.shape
     points = origins[:, None] + t[..., None] * directions[:, None]
+    observe = getattr(field, "observe", None)
+    if observe is not None and torch.is_grad_enabled():
+        observe(points[t <= reach[:, None]])
     out = field(points.reshape(-1, 3), with_color=with_color)
     w = ray_weights(out.occupancy.view(R, S))
     depth = (w * t).sum(dim=-1)

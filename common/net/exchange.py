@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from dimslam.common.geometry.camera import Camera
-from dimslam.common.net.messages import MappingBatch, MappingFrame, MapSnapshot
+from dimslam.common.net.messages import MappingBatch, MappingFrame, MapSnapshot, MessageError
 from dimslam.common.optim.window import FrameState
 
 
@@ -80,8 +80,15 @@ def to_snapshot(
 
 
 def load_map(field: torch.nn.Module, snap: MapSnapshot) -> None:
-    """Swap a snapshot's tensors into `field`."""
-    field.load_state_dict({k: torch.from_numpy(v) for k, v in snap.state.items()})
+    """Swap a snapshot's tensors into `field`.
+
+    Raises:
+        MessageError: the tensors do not fit the field (names, shapes, block coordinates).
+    """
+    try:
+        field.load_state_dict({k: torch.from_numpy(v) for k, v in snap.state.items()})
+    except (RuntimeError, ValueError) as e:
+        raise MessageError(f"snapshot {snap.version} does not fit this map: {e}") from e
 
 
 def snapshot_poses(snap: MapSnapshot, device: torch.device) -> dict[int, torch.Tensor]:

@@ -435,7 +435,8 @@ class MapSnapshot(Message):
         version: 1 after the initialization, +1 per round; newer replaces older.
         round: the mapping batch this snapshot answers.
         config: digest of the map and render settings; a tracker with other settings rejects it.
-        state: the field's tensors by name (`Field.state_dict()` as numpy arrays).
+        state: the field's tensors by name (`Field.state_dict()` as numpy arrays): float32,
+            and int64 for a sparse map's block coordinates.
         poses: refined `T_wc` by frame seq: every keyframe plus the round's frames.
         keyframes: seqs of every keyframe so far.
     """
@@ -467,7 +468,12 @@ class MapSnapshot(Message):
         for k, v in state_obj.items():
             if not isinstance(k, str):
                 raise MessageError("state: non-string tensor name")
-            state[k] = unpack_array(f"state[{k}]", v, "float32")
+            state[k] = unpack_array(f"state[{k}]", v)
+            if state[k].dtype not in (np.float32, np.int64):
+                raise MessageError(
+                    f"state[{k}]: dtype {state[k].dtype} not accepted (float32, or int64 for "
+                    "the indices of a sparse map)"
+                )
         poses = {}
         for i, item in enumerate(_get(body, "poses", list)):
             if (

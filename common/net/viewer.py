@@ -44,7 +44,7 @@ from dimslam.common.eval.evaluation import associate, umeyama
 from dimslam.common.eval.report import load_ground_truth
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
-from dimslam.common.map.field import Field
+from dimslam.common.map.field import make_field
 from dimslam.common.map.render import render_image
 from dimslam.common.net.exchange import load_map
 from dimslam.common.net.messages import (
@@ -167,7 +167,7 @@ class Viewer:
             self.rec.connect_grpc(args.connect_viewer)
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         self.digest = map_digest(cfg)
-        self.field = Field(cfg.map, device=device).requires_grad_(False)
+        self.field = make_field(cfg.map, device=device).requires_grad_(False)
         self.camera: Camera | None = None
         self.track: dict[int, PoseMessage] = {}  # frame -> newest pose
         self.rejects = Rejects()

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from dimslam.common.map.field import Field, MapConfig
+from dimslam.common.map.field import DenseField, MapConfig
 
 SMALL = MapConfig(voxel_sizes=(0.5, 0.25), bound=(-1.0, -1.0, -1.0, 1.0, 1.0, 1.0))
 
@@ -28,7 +28,7 @@ def trilinear_by_hand(grid: torch.Tensor, p: torch.Tensor, origin: float, voxel:
 
 def test_lookup_matches_hand_computation():
     torch.manual_seed(0)
-    field = Field(SMALL)
+    field = DenseField(SMALL)
     with torch.no_grad():
         for g in field.geometry:
             g.copy_(torch.randn_like(g))
@@ -45,7 +45,7 @@ def test_lookup_matches_hand_computation():
 
 def test_bound_not_a_multiple_of_the_voxel_is_covered():
     cfg = MapConfig(voxel_sizes=(0.3,), bound=(0.0, 0.0, 0.0, 1.0, 0.5, 0.7))
-    field = Field(cfg)
+    field = DenseField(cfg)
     assert field.geometry[0].shape == (1, 1, 4, 3, 5)  # ceil(e / 0.3) + 1 for z, y, x
     with torch.no_grad():
         field.geometry[0].copy_(torch.arange(60.0).view(1, 1, 4, 3, 5))
@@ -56,14 +56,14 @@ def test_bound_not_a_multiple_of_the_voxel_is_covered():
 
 
 def test_outside_the_bound_is_empty_and_inside_is_not():
-    field = Field(SMALL)
+    field = DenseField(SMALL)
     out = field(torch.tensor([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [0.0, -3.0, 0.0]]))
     assert out.occupancy[0] > 0 and out.occupancy[1] == 0 and out.occupancy[2] == 0
     assert out.rgb.shape == (3, 3) and ((out.rgb >= 0) & (out.rgb <= 1)).all()
 
 
 def test_gradients_reach_grids_and_decoder():
-    field = Field(SMALL)
+    field = DenseField(SMALL)
     out = field(torch.rand(64, 3) * 1.6 - 0.8)
     (out.occupancy.sum() + out.rgb.sum()).backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in field.grid_parameters())
@@ -73,7 +73,7 @@ def test_gradients_reach_grids_and_decoder():
 
 
 def test_paper_configuration_sizes():
-    field = Field(MapConfig())
+    field = DenseField(MapConfig())
     assert len(field.geometry) == 6 and len(field.color) == 2
     assert field.geometry[-1].shape[2:] == (151, 151, 151)  # 12 m at 8 cm
     # 6 geometry grids + 3 colour channels on the two finest: ~62 MB at 12 m^3.
@@ -82,4 +82,4 @@ def test_paper_configuration_sizes():
 
 def test_invalid_bound_is_rejected():
     with pytest.raises(ValueError, match="min < max"):
-        Field(MapConfig(bound=(0.0, 0.0, 0.0, 1.0, -1.0, 1.0)))
+        DenseField(MapConfig(bound=(0.0, 0.0, 0.0, 1.0, -1.0, 1.0)))

@@ -5,7 +5,7 @@ import torch
 
 from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera
-from dimslam.common.map.field import Field, FieldOutput, MapConfig
+from dimslam.common.map.field import DenseField, FieldOutput, MapConfig
 from dimslam.common.map.render import (
     RenderConfig,
     camera_rays,
@@ -70,7 +70,7 @@ def test_weights_follow_the_termination_rule():
 
 
 def test_gradients_flow_to_pose_and_map():
-    field = Field(MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3, -3, -1, 3, 3, 5)))
+    field = DenseField(MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3, -3, -1, 3, 3, 5)))
     xi = torch.zeros(6, requires_grad=True)
     T = pose.retract(torch.eye(4), xi)
     out = render_pixels(field, CAM, torch.tensor([[5.0, 5.0], [30.0, 20.0]]), T, CFG)

@@ -1,0 +1,182 @@
+"""The sparse grids: trilinear features and gradients as a dense grid's, growth, snapshots."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from walls import CAM
+
+from dimslam.common.geometry import pose
+from dimslam.common.map.field import DenseField, MapConfig, SparseField, make_field
+from dimslam.common.map.render import RenderConfig, render_pixels
+from dimslam.common.map.sparse import BLOCK, COLUMNS, SparseGrids
+from dimslam.common.net.exchange import load_map, to_snapshot
+from dimslam.common.net.messages import MapSnapshot, MessageError
+from dimslam.common.optim.objective import LossConfig
+from dimslam.common.optim.window import FrameState
+from dimslam.mapper.mapper import Mapper, MapperConfig
+
+VOXELS = (0.3, 0.1)
+
+
+def vertex_value(level: int, v: tuple[int, int, int]) -> float:
+    """A value per vertex that no two neighbours share."""
+    return math.sin(1.3 * v[0] + 2.1 * v[1] + 0.7 * v[2] + 5.0 * level)
+
+
+def filled(points: torch.Tensor) -> SparseGrids:
+    """Grids stored around `points`, each stored vertex holding `vertex_value`."""
+    grids = SparseGrids(VOXELS, 1, 0.0)
+    grids.allocate(points)
+    with torch.no_grad():
+        for i, (level, bx, by, bz) in enumerate(grids.blocks.tolist()):
+            row, col = divmod(i + 1, COLUMNS)
+            for x in range(BLOCK):
+                for y in range(BLOCK):
+                    for z in range(BLOCK):
+                        v = (bx * BLOCK + x, by * BLOCK + y, bz * BLOCK + z)
+                        grids.atlas[0, 0, row * (BLOCK + 1) + z, y, col * (BLOCK + 1) + x] = (
+                            vertex_value(level, v)
+                        )
+    return grids
+
+
+def trilinear(level: int, p: np.ndarray, stored) -> float:
+    """The reference: trilinear interpolation of `vertex_value` (0 where not `stored`)."""
+    x = p / VOXELS[level]
+    base = np.floor(x).astype(int)
+    f = x - base
+    total = 0.0
+    for k in range(8):
+        o = np.array([k & 1, (k >> 1) & 1, (k >> 2) & 1])
+        w = np.prod(np.where(o == 1, f, 1 - f))
+        v = tuple(int(c) for c in base + o)
+        if stored(level, v):
+            total += w * vertex_value(level, v)
+    return total
+
+
+def test_lookup_interpolates_stored_vertices_across_block_borders_and_zero_elsewhere():
+    gen = torch.Generator().manual_seed(0)
+    stored_region = torch.rand(3000, 3, generator=gen) * 1.6 - 0.8  # spans several blocks
+    grids = filled(stored_region)
+    blocks = {tuple(b) for b in grids.blocks.tolist()}
+
+    def stored(level, v):
+        return (level, *(c // BLOCK for c in v)) in blocks
+
+    inside = torch.rand(300, 3, generator=gen) * 1.6 - 0.8
+    outside = torch.rand(100, 3, generator=gen) * 2 + 3.0  # never stored
+    points = torch.cat([inside, outside])
+    got = grids.lookup(points).detach()
+    for n in range(points.shape[0]):
+        for level in range(len(VOXELS)):
+            want = trilinear(level, points[n].double().numpy(), stored)
+            assert got[n, level, 0].item() == pytest.approx(want, abs=2e-4)  # float32 coords
+    assert got[300:].abs().max() == 0
+    assert grids.allocated(inside).all() and not grids.allocated(outside).any()
+
+
+def test_gradients_reach_each_vertex_once_whichever_brick_holds_its_copy():
+    gen = torch.Generator().manual_seed(1)
+    grids = filled(torch.rand(2000, 3, generator=gen) * 1.6 - 0.8)
+    points = torch.rand(200, 3, generator=gen) * 1.2 - 0.6
+    weights = torch.rand(200, len(VOXELS), 1, generator=gen)
+    (grids.lookup(points) * weights).sum().backward()
+    grids.settle_gradient()
+    # The reference: d loss / d vertex of the finest level, summed over the points.
+    want: dict[tuple, float] = {}
+    for n, p in enumerate(points.double().numpy()):
+        x = p / VOXELS[1]
+        base = np.floor(x).astype(int)
+        f = x - base
+        for k in range(8):
+            o = np.array([k & 1, (k >> 1) & 1, (k >> 2) & 1])
+            v = tuple(int(c) for c in base + o)
+            want[v] = want.get(v, 0.0) + float(np.prod(np.where(o == 1, f, 1 - f))) * float(
+                weights[n, 1, 0]
+            )
+    index = {tuple(b): i for i, b in enumerate(grids.blocks.tolist())}
+    grad = grids.atlas.grad
+    crossing = 0
+    for v, g in want.items():
+        i = index[(1, *(c // BLOCK for c in v))]
+        row, col = divmod(i + 1, COLUMNS)
+        local = [c % BLOCK for c in v]
+        got = grad[0, 0, row * (BLOCK + 1) + local[2], local[1], col * (BLOCK + 1) + local[0]]
+        assert got.item() == pytest.approx(g, rel=2e-3, abs=1e-5)  # float32 coords
+        crossing += any(c == 0 for c in local)
+    assert crossing > 0  # some of those vertices were reached through a lower brick's copy
+    copies = grad[0, 0].clone()
+    for i in range(grids.blocks.shape[0] + 1):
+        z, x = divmod(i, COLUMNS)
+        z, x = z * (BLOCK + 1), x * (BLOCK + 1)
+        copies[z : z + BLOCK, :BLOCK, x : x + BLOCK] = 0
+    assert copies.abs().max() == 0  # a copy never keeps a gradient of its own
+
+
+def test_a_sparse_field_matches_a_dense_one_where_nothing_was_learned():
+    cfg = MapConfig(voxel_sizes=(0.5, 0.25), init_std=0.0, bound=(-3, -3, -3, 3, 3, 3))
+    dense = DenseField(cfg)
+    sparse = SparseField(replace(cfg, grids="sparse"))
+    decoder = ("trunk", "occupancy", "color_head")
+    weights = {k: v for k, v in dense.state_dict().items() if k.startswith(decoder)}
+    sparse.load_state_dict({**sparse.state_dict(), **weights})
+    p = torch.rand(500, 3) * 4 - 2
+    sparse.allocate(p[:250])
+    a, b = dense(p), sparse(p)
+    assert torch.allclose(a.occupancy, b.occupancy, atol=1e-6)
+    assert torch.allclose(a.rgb, b.rgb, atol=1e-6)
+
+
+def small_mapper(grids: str) -> Mapper:
+    return Mapper(
+        MapperConfig(prior_iters=60),
+        MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0), grids=grids),
+        LossConfig(patch_sizes=(1, 5), min_views=1, smooth_blocks=4),
+        RenderConfig(n_stratified=16, n_importance=8, importance_rounds=1, far=6.0),
+        0.0,
+        50,
+        CAM,
+        torch.device("cpu"),
+        torch.Generator().manual_seed(0),
+    )
+
+
+def test_the_map_grows_to_follow_a_camera_that_leaves_the_initial_bounds():
+    """The plane at the gauge depth is fitted in front of a camera 20 m away, far out of the
+    dense map's box: the sparse map stores cells there and renders the plane; the dense one
+    cannot (its occupancy is zero outside the box)."""
+    far = pose.make_pose(torch.eye(3), torch.tensor([20.0, 0.0, 0.0]))
+    uv = torch.tensor([[40.0, 30.0], [10.0, 50.0], [70.0, 12.0]])
+    depths = {}
+    for grids in ("sparse", "dense"):
+        m = small_mapper(grids)
+        m.fit_prior(FrameState(0, 0.0, None, torch.eye(4)))
+        before = m.field.bound.clone()
+        m.fit_prior(FrameState(1, 0.1, None, far))
+        with torch.no_grad():
+            depths[grids] = render_pixels(m.field, CAM, uv, far, m.render_cfg).depth
+        if grids == "sparse":
+            assert before[1, 0] < 6 and m.field.bound[1, 0] > 20  # the stored region grew
+            assert m.field.memory_bytes() < 2e6
+    assert torch.allclose(depths["sparse"], torch.full((3,), 2.0), atol=0.3)
+    assert not torch.allclose(depths["dense"], torch.full((3,), 2.0), atol=0.5)
+
+
+def test_a_sparse_snapshot_loads_into_a_fresh_field_of_any_size():
+    m = small_mapper("sparse")
+    m.fit_prior(FrameState(0, 0.0, None, torch.eye(4)))
+    snap = MapSnapshot.from_bytes(to_snapshot(1, 0, "d", m.field, [], []).to_bytes())
+    fresh = make_field(m.field.cfg).requires_grad_(False)
+    load_map(fresh, snap)
+    p = torch.rand(300, 3) * 3 - 1.5
+    assert torch.equal(fresh(p).occupancy, m.field(p).occupancy.detach())
+    assert not fresh.geometry.atlas.requires_grad
+    bad = dict(snap.state)
+    bad["geometry.blocks"] = bad["geometry.blocks"].copy()
+    bad["geometry.blocks"][0, 1] = 1 << 20  # a block far away: the index would explode
+    with pytest.raises(MessageError, match="does not fit"):
+        load_map(fresh, MapSnapshot(2, 0, "d", bad, {}))
