@@ -171,9 +171,8 @@ def run_dataset(
         lost = len(slam.lost_frames)
         if lost:
             log.warning("%d frames lost (no pose): %s", lost, [i for i, _ in slam.lost_frames])
-        metrics = report_run(
-            source, out_dir, layout, mesh_path, seconds, len(traj), {"frames_lost": lost}
-        )
+        extra = {"frames_lost": lost, "map_mb": slam.back.field.memory_bytes() / 2**20}
+        metrics = report_run(source, out_dir, layout, mesh_path, seconds, len(traj), extra)
         return RunSummary(
             len(slam.frames) + lost,
             len(slam.keyframes),
