@@ -265,6 +265,7 @@ class Mapper:
             generator=self.generator,
             smooth=True,
             max_loss=float("inf"),
+            surface=True,
         )
         return MapRound(stats, tuple(f.index for f in window))
 

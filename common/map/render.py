@@ -38,6 +38,16 @@ class RenderConfig:
     importance_rounds: int = option(4, "Importance rounds (paper: 4, so 96 samples in all).")
     near: float = option(0.1, "Nearest rendered depth.")
     far: float = option(8.0, "Farthest rendered depth.")
+    surface_samples: int = option(
+        0,
+        "Mapping rounds: samples per ray around the depth the map rendered at the round's "
+        "start, plus `coarse_samples` over [near, far], all in one pass with gradients, "
+        "instead of the stratified and importance rounds (0: the paper's sampling).",
+    )
+    coarse_samples: int = option(8, "Stratified samples over [near, far] with surface sampling.")
+    surface_band: float = option(
+        0.15, "Surface samples cover the rendered depth +- this fraction of it."
+    )
 
 
 @dataclass(frozen=True)
@@ -154,6 +164,34 @@ def sample_depths(
     return t, reach
 
 
+def surface_depths(
+    depth: torch.Tensor, cfg: RenderConfig, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sorted sample depths `(R, S)` around known depths `(R,)`: `surface_samples` stratified
+    in `depth * (1 +- surface_band)` plus `coarse_samples` stratified over [near, far]; and how
+    far each ray sees (the end of its band)."""
+    R = depth.shape[0]
+
+    def stratified(lo: torch.Tensor, hi: torch.Tensor, count: int) -> torch.Tensor:
+        steps = torch.arange(count, device=depth.device, dtype=depth.dtype)
+        if generator is not None:
+            shape = (R, count)
+            u = torch.rand(shape, device=depth.device, dtype=depth.dtype, generator=generator)
+        else:
+            u = torch.full((R, count), 0.5, device=depth.device, dtype=depth.dtype)
+        return lo[:, None] + (hi - lo)[:, None] * (steps + u) / count
+
+    d = depth.clamp(cfg.near, cfg.far)
+    lo = (d * (1 - cfg.surface_band)).clamp_min(cfg.near)
+    hi = (d * (1 + cfg.surface_band)).clamp_max(cfg.far)
+    near = torch.full_like(d, cfg.near)
+    far = torch.full_like(d, cfg.far)
+    t = torch.cat(
+        [stratified(near, far, cfg.coarse_samples), stratified(lo, hi, cfg.surface_samples)], -1
+    )
+    return torch.sort(t, dim=-1).values, hi
+
+
 def _occupancy(
     field: FieldFn, origins: torch.Tensor, directions: torch.Tensor, t: torch.Tensor
 ) -> torch.Tensor:
@@ -169,6 +207,7 @@ def render_rays(
     cfg: RenderConfig,
     generator: torch.Generator | None = None,
     with_color: bool = True,
+    depth_prior: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Render depth and colour of rays `(R, 3)`; gradients reach the field and the rays.
 
@@ -180,10 +219,15 @@ def render_rays(
         generator: random source for stratified jitter; None renders deterministically.
         with_color: False skips the colour head (depth-only rendering, e.g. for tracking
             geometry); `rgb` is then zeros.
+        depth_prior: `(R,)` depths the rays are known to end near: sampled around them
+            (`surface_depths`) where `cfg.surface_samples` > 0.
     """
     check_shape("origins", origins, (None, 3))
     check_shape("directions", directions, (origins.shape[0], 3))
-    t, reach = sample_depths(field, origins, directions, cfg, generator)
+    if depth_prior is not None and cfg.surface_samples > 0:
+        t, reach = surface_depths(depth_prior, cfg, generator)
+    else:
+        t, reach = sample_depths(field, origins, directions, cfg, generator)
     R, S = t.shape
     points = origins[:, None] + t[..., None] * directions[:, None]
     observe = getattr(field, "observe", None)
@@ -204,10 +248,11 @@ def render_pixels(
     cfg: RenderConfig,
     generator: torch.Generator | None = None,
     with_color: bool = True,
+    depth_prior: torch.Tensor | None = None,
 ) -> RenderOutput:
     """`render_rays` for pixels `(R, 2)` of a camera at `T_wc` (`(4, 4)` or `(R, 4, 4)`)."""
     origins, directions = camera_rays(camera, uv, T_wc)
-    return render_rays(field, origins, directions, cfg, generator, with_color)
+    return render_rays(field, origins, directions, cfg, generator, with_color, depth_prior)
 
 
 def render_image(
@@ -233,3 +278,31 @@ def render_image(
             colours.append(out.rgb)
     shape = (camera.height, camera.width)
     return torch.cat(depths).view(shape), torch.cat(colours).view(*shape, 3)
+
+
+class DepthPrior:
+    """Where each frame's rays end, as the map rendered them once (at `width` px, nearest
+    pixel): the depths `surface_depths` samples around, in a mapping round whose map and
+    poses move little."""
+
+    def __init__(
+        self,
+        field: FieldFn,
+        camera: Camera,
+        poses: torch.Tensor,
+        cfg: RenderConfig,
+        width: int = 40,
+    ) -> None:
+        small = camera.resized(min(width, camera.width))
+        self.scale = torch.tensor(
+            [small.width / camera.width, small.height / camera.height], device=poses.device
+        )
+        self.size = (small.width, small.height)
+        self.depths = torch.stack([render_image(field, small, T, cfg)[0] for T in poses])
+
+    def __call__(self, frame: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """`(M,)` depths of pixels `uv` `(M, 2)` of window frames `frame` `(M,)`."""
+        small = ((uv + 0.5) * self.scale).long()
+        u = small[:, 0].clamp(0, self.size[0] - 1)
+        v = small[:, 1].clamp(0, self.size[1] - 1)
+        return self.depths[frame, v, u]

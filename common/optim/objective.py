@@ -20,7 +20,7 @@ import torch
 
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.geometry.shapes import check_shape
-from dimslam.common.map.render import FieldFn, RenderConfig, render_pixels
+from dimslam.common.map.render import DepthPrior, FieldFn, RenderConfig, render_pixels
 from dimslam.common.optim import losses
 from dimslam.common.options import option
 
@@ -82,6 +82,7 @@ def window_objective(
     render_cfg: RenderConfig,
     generator: torch.Generator | None = None,
     smooth: bool = False,
+    prior: DepthPrior | None = None,
 ) -> WindowLoss:
     """Evaluate the objective on pixels of a window.
 
@@ -97,10 +98,13 @@ def window_objective(
         render_cfg: ray sampling.
         generator: randomness for ray sampling and smoothness blocks.
         smooth: add the smoothness term (mapping).
+        prior: the depths the window's rays are known to end near (`RenderConfig`'s surface
+            sampling), or None.
     """
     check_shape("poses", poses, (images.shape[0], 4, 4))
     check_shape("uv", uv, (frame.shape[0], 2))
-    out = render_pixels(field, camera, uv, poses[frame], render_cfg, generator)
+    near = prior(frame, uv) if prior is not None else None
+    out = render_pixels(field, camera, uv, poses[frame], render_cfg, generator, depth_prior=near)
     render_term = losses.render_l1(out.rgb, pixel_colors(images, frame, uv))
 
     # Every pixel's patch is warped into every window frame in one call, its own frame masked
@@ -119,7 +123,9 @@ def window_objective(
     loss = cfg.warp_weight * warp_value + cfg.render_weight * render_term.value
     smooth_value = 0.0
     if smooth and cfg.smooth_weight > 0 and cfg.smooth_blocks > 0:
-        term = _smoothness(field, images, poses, camera, cfg.smooth_blocks, render_cfg, generator)
+        term = _smoothness(
+            field, images, poses, camera, cfg.smooth_blocks, render_cfg, generator, prior
+        )
         loss = loss + cfg.smooth_weight * term.value
         smooth_value = term.value.item()
     return WindowLoss(
@@ -140,6 +146,7 @@ def _smoothness(
     blocks: int,
     render_cfg: RenderConfig,
     generator: torch.Generator | None,
+    prior: DepthPrior | None = None,
 ) -> losses.LossTerm:
     """Render `blocks` random 2x2 pixel blocks and score their depth smoothness."""
     device = images.device
@@ -152,7 +159,10 @@ def _smoothness(
     v = (v0[:, None] + dv).reshape(-1)
     f = frame[:, None].expand(blocks, 4).reshape(-1)
     uv = torch.stack([u, v], dim=-1).to(images.dtype)
-    out = render_pixels(field, camera, uv, poses[f], render_cfg, generator, with_color=False)
+    near = prior(f, uv) if prior is not None else None
+    out = render_pixels(
+        field, camera, uv, poses[f], render_cfg, generator, with_color=False, depth_prior=near
+    )
     return losses.smoothness_loss(
         out.depth.view(blocks, 2, 2), images[f, v, u].view(blocks, 2, 2, 3)
     )

@@ -19,7 +19,7 @@ import torch
 from dimslam.common.errors import DimslamError
 from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera
-from dimslam.common.map.render import FieldFn, RenderConfig, render_pixels
+from dimslam.common.map.render import DepthPrior, FieldFn, RenderConfig, render_pixels
 from dimslam.common.optim import losses
 from dimslam.common.optim.objective import LossConfig, WindowLoss, window_objective
 
@@ -166,6 +166,7 @@ def optimize_window(
     smooth: bool = False,
     extra_loss: Callable[[WindowLoss, torch.Tensor], torch.Tensor] | None = None,
     max_loss: float = 10.0,
+    surface: bool = False,
 ) -> WindowStats:
     """Minimize the window objective; write the optimized poses back into `frames`.
 
@@ -184,16 +185,32 @@ def optimize_window(
         extra_loss: `(window_loss, frame_of_pixels) -> tensor` added to the total (e.g. the
             scale gauge during initialization).
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
+        surface: sample rays around the depth the map renders for the window at the start
+            (`RenderConfig.surface_samples`; a map that already holds the window's surfaces).
 
     Raises:
         TrackingLost: on divergence; the frames keep their poses from before the step.
     """
     images = torch.stack([f.rgb for f in frames])
+    prior = None
+    if surface and render_cfg.surface_samples > 0:
+        poses = torch.stack([f.T_wc for f in frames])
+        prior = DepthPrior(field_fn, camera, poses, render_cfg)
 
     def objective(it: int, poses: torch.Tensor) -> tuple[torch.Tensor, WindowLoss]:
         frame, uv = pixels(it)
         result = window_objective(
-            field_fn, images, poses, camera, frame, uv, loss_cfg, render_cfg, generator, smooth
+            field_fn,
+            images,
+            poses,
+            camera,
+            frame,
+            uv,
+            loss_cfg,
+            render_cfg,
+            generator,
+            smooth,
+            prior,
         )
         total = result.total
         if extra_loss is not None:
