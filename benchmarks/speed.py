@@ -5,6 +5,7 @@ a short run, memory.
     python benchmarks/speed.py --presets cpu --dataset ../shared/data/room0 --threads 1
     python benchmarks/speed.py --presets cpu,tiny --json out/speed.json
     python benchmarks/speed.py --device cuda:0 --full-paper --full-init --max-iters 0
+    python benchmarks/speed.py --presets cpu --set render.surface_samples=12 --max-iters 50
 
 Frames are the built-in synthetic scene, rendered in memory at the preset's width (320x240
 where the preset keeps the input size); the tracking timing takes `--dataset`'s instead when
@@ -291,7 +292,7 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
     """Every figure of one preset."""
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    cfg = PRESETS[name]
+    cfg = apply_overrides(PRESETS[name], dict(kv.split("=", 1) for kv in args.set))
     # The cheap initialization times only its final phase, every init frame in the window: the
     # estimate below prices the growing phase (fewer frames) at that rate too, an upper bound.
     init = {
@@ -328,7 +329,7 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
         steps["prior_ms_per_iter"] * cfg.mapper.prior_iters
         + steps["init_ms_per_iter"] * init_iterations(cfg.mapper)
     ) / 1e3
-    result = {"preset": name, "size": [camera.width, camera.height], **steps}
+    result = {"preset": name, "set": args.set, "size": [camera.width, camera.height], **steps}
     log.info("%s: timing the tracking step per frame", name)
     track_cfg = cfg
     if args.track_init_iters is not None:
@@ -457,6 +458,13 @@ def main(argv: list[str] | None = None) -> int:
         help="initialization iterations (and at most as many per joining frame and for the "
         "prior) of the map the tracking timing tracks against (default: the preset's)",
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a setting of every preset, e.g. render.surface_samples=12 (repeatable)",
+    )
     parser.add_argument("--json", type=Path, help="write the JSON here instead of stdout")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
@@ -468,6 +476,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("need --repeats, --init-iters, --track-frames, --track-init-iters >= 1")
     if args.frames < 3 or args.adam_frames < 0:
         parser.error("need --frames >= 3 and --adam-frames >= 0")
+    if any("=" not in kv for kv in args.set):
+        parser.error("--set takes KEY=VALUE")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = device_for(args.device)

@@ -119,6 +119,19 @@ def test_map_lag_0_tracks_every_frame_on_the_newest_map(sequence, tmp_path):
     assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
 
 
+def test_a_sparse_map_travels_between_the_processes(sequence, tmp_path):
+    """Snapshots of a growing map (int64 block coordinates, an atlas that changes shape)
+    reach the tracker, which tracks on them as on the dense map."""
+    out = tmp_path / "run"
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--map.grids", "sparse"]
+    assert main(["run", str(sequence), "--out", str(out), *args]) == 0
+    assert len(read_tum(out / "poses_received.txt")) == FRAMES
+    assert json.loads((out / "metrics.json").read_text())["ate_rmse_m"] < 0.04
+    assert "rejected a message" not in (out / "tracker.log").read_text()
+    snap = MapSnapshot.from_bytes((out / "map.msgpack").read_bytes())
+    assert snap.state["geometry.blocks"].dtype == np.int64 and len(snap.state["geometry.blocks"])
+
+
 def test_realtime_replays_the_sequence_as_a_live_camera(sequence, tmp_path, capsys):
     """`--realtime`: the camera holds only until the map exists, then sends at the rate and
     never waits; the tracker keeps the newest frame when busy and reports what it did."""
