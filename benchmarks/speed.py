@@ -273,9 +273,12 @@ def full_run(
 
 def samples_per_iteration(cfg: SlamConfig) -> int:
     """Ray samples a mapping iteration evaluates with gradients: the pixels' and the
-    smoothness blocks' rays, each with its stratified and importance samples."""
+    smoothness blocks' rays, each with its stratified and importance samples (or its coarse
+    and surface samples)."""
     rays = cfg.mapper.pixels + 4 * (cfg.loss.smooth_blocks if cfg.loss.smooth_weight > 0 else 0)
     r = cfg.render
+    if r.surface_samples > 0:
+        return rays * (r.coarse_samples + r.surface_samples)
     return rays * (r.n_stratified + r.n_importance * r.importance_rounds)
 
 

@@ -137,14 +137,10 @@ class Field(nn.Module):
             self._seen.clear()
 
     def follow(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
-        """Hook `optimizer` (over this field's parameters) up to grids that grow and keep
-        copies of their cells: `adopt_growth` before each step, `stepped` after."""
+        """Hook `optimizer` (over this field's parameters, fresh) up to grids that grow and
+        keep copies of their cells: `adopt_growth` before each step."""
         optimizer.register_step_pre_hook(lambda opt, *_: self.adopt_growth(opt))
-        optimizer.register_step_post_hook(lambda *_: self.stepped())
         return optimizer
-
-    def stepped(self) -> None:
-        """An optimizer changed the grids."""
 
     @contextmanager
     def learning(self):
@@ -283,19 +279,26 @@ class SparseField(Field):
             grids.allocate(points)
 
     def adopt_growth(self, optimizer: torch.optim.Optimizer | None = None) -> None:
-        before = [g.atlas for g in self._grids()]
+        before = [(g.atlas, g.blocks.shape[0]) for g in self._grids()]
         super().adopt_growth(optimizer)
-        for grids, old in zip(self._grids(), before, strict=True):
+        for grids, (old, blocks) in zip(self._grids(), before, strict=True):
             if grids.atlas is not old:
                 if old.grad is not None:
                     grids.atlas.grad = grids.grown(old.grad)
                 if optimizer is not None:
                     _swap_parameter(optimizer, old, grids.atlas, grids.grown)
+            state = optimizer.state.get(grids.atlas, {}) if optimizer is not None else {}
+            if grids.blocks.shape[0] != blocks:
+                # New copies of old owners must start from their owners' Adam state too.
+                for value in state.values():
+                    if torch.is_tensor(value) and value.shape == grids.atlas.shape:
+                        grids.mirror(value)
             grids.settle_gradient()
 
-    def stepped(self) -> None:
+    def follow(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
         for grids in self._grids():
-            grids.stale = True
+            grids.stale = True  # copies and owners equal at the optimizer's start
+        return super().follow(optimizer)
 
     def memory_bytes(self) -> int:
         decoder = sum(t.numel() * t.element_size() for t in self.decoder_parameters())

@@ -6,9 +6,9 @@ coordinates). A stored block is a brick of `BRICK`^3 vertices in one dense atlas
 own vertices plus a copy of the first vertices of its upper neighbours, so that every cell
 lies whole inside one brick and one `grid_sample` over the atlas interpolates all levels of
 all points at once (the fused kernel; a gather of 8 corner rows per point and level measured
-4x slower on one core). The copies are kept equal to their owners: their gradients are added
-to the owners' before an optimizer step, and their values are copied from the owners after it
-(on the next lookup; `Field.follow` hooks an optimizer up). A per-level index over the box of
+4x slower on one core). The copies are kept equal to their owners: before each optimizer step a
+copy and its owner both get the sum of their gradients, so that Adam moves them alike
+(`settle_gradient`; `Field.follow` hooks an optimizer up). A per-level index over the box of
 stored block coordinates gives a block's brick; it is rebuilt when blocks are added, so there
 is no scene bound: a camera that walks away keeps being mapped.
 
@@ -54,8 +54,8 @@ class SparseGrids(torch.nn.Module):
         self.register_buffer("blocks", torch.zeros(0, 4, dtype=torch.long))
         self.atlas = torch.nn.Parameter(torch.zeros(1, channels, BRICK, BRICK, BRICK * COLUMNS))
         self.stale = True
-        """The copies may differ from their owners: set after an optimizer step (the fused
-        Adam does not bump the version counter a check could read), synced on next lookup."""
+        """The copies may differ from their owners (new links, a load, a new optimizer):
+        synced on the next lookup."""
         if device is not None:
             self.to(device)
         self._rebuild()
@@ -209,6 +209,7 @@ class SparseGrids(torch.nn.Module):
         local = self._local(BRICK)
         self._apron = local[(local == BLOCK).any(dim=-1)]  # (217, 3) a brick's copies
         self._owner_table = torch.full((n + 1, self._apron.shape[0]), -1, device=device)
+        self._copy_table = torch.zeros(0, self._apron.shape[0], dtype=torch.long, device=device)
         self._around = torch.zeros(n + 1, dtype=torch.int32, device=device)
         self._rebuild_index()
         self._link(torch.arange(n, device=device))
@@ -264,10 +265,15 @@ class SparseGrids(torch.nn.Module):
             there = self._find(blocks[:, None, 0].expand(-1, 8).reshape(-1), up.reshape(-1, 3))
             bits = (there >= 0).view(-1, 8).int() << torch.arange(8, device=device).int()
             self._around[ids + 1] = bits.sum(-1).int()
-        copies = self._flat(torch.arange(n + 1, device=device)[:, None], self._apron[None])
-        self._copies, self._owners = copies.view(-1), self._owner_table.view(-1)
+        first = self._copy_table.shape[0]
+        if n + 1 > first:
+            bricks = torch.arange(first, n + 1, device=device)
+            added = self._flat(bricks[:, None], self._apron[None])
+            self._copy_table = torch.cat([self._copy_table, added])
+        self._copies, self._owners = self._copy_table.view(-1), self._owner_table.view(-1)
         has = self._owners >= 0
         self._owned_copies, self._owning = self._copies[has], self._owners[has]
+        self._orphans = self._copies[~has]
         self.stale = True
 
     @torch.no_grad()
@@ -275,23 +281,33 @@ class SparseGrids(torch.nn.Module):
         """Copies take their owners' values (zero where the owner is not stored)."""
         if not self.stale:
             return
-        flat = self.atlas.data.view(self.channels, -1)
-        values = flat[:, self._owners.clamp_min(0)] * (self._owners >= 0)
-        flat[:, self._copies] = values
+        self.mirror(self.atlas.data)
         self.stale = False
 
     @torch.no_grad()
+    def mirror(self, tensor: torch.Tensor) -> None:
+        """Set the copies of `tensor` (shaped as the atlas: values, optimizer state) to their
+        owners' entries, orphan copies to zero."""
+        flat = tensor.view(self.channels, -1)
+        flat[:, self._owned_copies] = flat[:, self._owning]
+        flat[:, self._orphans] = 0
+
+    @torch.no_grad()
     def settle_gradient(self) -> None:
-        """Add the copies' gradients to their owners' and clear them: call after backward,
-        before an optimizer step (a tensor hook would pin autograd's record of the atlas's
-        shape, which `allocate` changes)."""
+        """Give every copy and its owner the sum of their gradients (orphan copies none):
+        call after backward, before an optimizer step. An elementwise optimizer (Adam) then
+        moves a copy exactly as its owner, given equal values and state at its start, which
+        `stale` (set when it is hooked up, `Field.follow`) and the next lookup ensure. (A
+        tensor hook would pin autograd's record of the atlas's shape, which `allocate`
+        changes; the fused Adam does not bump the version counter a sync could check.)"""
         grad = self.atlas.grad
         if grad is None:
             return
         grad = self.grown(grad)
         flat = grad.view(self.channels, -1)
         flat.index_add_(1, self._owning, flat[:, self._owned_copies])
-        flat[:, self._copies] = 0
+        flat[:, self._owned_copies] = flat[:, self._owning]
+        flat[:, self._orphans] = 0
         self.atlas.grad = grad
 
     def extent(self, level: int = -1) -> torch.Tensor:

@@ -109,12 +109,24 @@ def test_gradients_reach_each_vertex_once_whichever_brick_holds_its_copy():
         assert got.item() == pytest.approx(g, rel=2e-3, abs=1e-5)  # float32 coords
         crossing += any(c == 0 for c in local)
     assert crossing > 0  # some of those vertices were reached through a lower brick's copy
-    copies = grad[0, 0].clone()
-    for i in range(grids.blocks.shape[0] + 1):
-        z, x = divmod(i, COLUMNS)
-        z, x = z * (BLOCK + 1), x * (BLOCK + 1)
-        copies[z : z + BLOCK, :BLOCK, x : x + BLOCK] = 0
-    assert copies.abs().max() == 0  # a copy never keeps a gradient of its own
+    # Every copy of a vertex carries its owner's whole gradient (so that Adam moves them
+    # alike); a copy whose owner is not stored carries none.
+    checked = 0
+    for i, (level, *block) in enumerate(grids.blocks.tolist()):
+        row, col = divmod(i + 1, COLUMNS)
+        for local in [(BLOCK, 3, 5), (2, BLOCK, 7), (6, 1, BLOCK), (BLOCK, BLOCK, BLOCK)]:
+            copy = grad[0, 0, row * (BLOCK + 1) + local[2], local[1], col * (BLOCK + 1) + local[0]]
+            v = [b * BLOCK + c for b, c in zip(block, local, strict=True)]
+            owner = index.get((level, *(c // BLOCK for c in v)))
+            if owner is None:
+                assert copy == 0
+                continue
+            orow, ocol = divmod(owner + 1, COLUMNS)
+            o = [c % BLOCK for c in v]
+            want = grad[0, 0, orow * (BLOCK + 1) + o[2], o[1], ocol * (BLOCK + 1) + o[0]]
+            assert copy == want
+            checked += want != 0
+    assert checked > 0
 
 
 def test_a_sparse_field_matches_a_dense_one_where_nothing_was_learned():
@@ -180,3 +192,24 @@ def test_a_sparse_snapshot_loads_into_a_fresh_field_of_any_size():
     bad["geometry.blocks"][0, 1] = 1 << 20  # a block far away: the index would explode
     with pytest.raises(MessageError, match="does not fit"):
         load_map(fresh, MapSnapshot(2, 0, "d", bad, {}))
+
+
+def test_adam_keeps_every_copy_equal_to_its_owner_while_the_map_grows():
+    field = SparseField(MapConfig(voxel_sizes=VOXELS, grids="sparse"))
+    gen = torch.Generator().manual_seed(2)
+    field.allocate(torch.rand(500, 3, generator=gen))
+    optimizer = field.follow(torch.optim.Adam(field.parameters(), lr=1e-2, fused=True))
+    with field.learning():
+        for step in range(12):
+            p = torch.rand(800, 3, generator=gen) * (1 + step / 4)  # reaching further each step
+            field.observe(p)
+            optimizer.zero_grad(set_to_none=True)
+            out = field(p)
+            (out.occupancy.square().mean() + out.rgb.square().mean()).backward()
+            optimizer.step()
+    for grids in field._grids():
+        flat = grids.atlas.detach().view(grids.channels, -1)
+        assert grids.blocks.shape[0] > 0 and flat.abs().max() > 0.01  # it grew and moved
+        diff = flat[:, grids._owned_copies] - flat[:, grids._owning]
+        assert diff.abs().max() < 1e-6
+        assert flat[:, grids._orphans].abs().max() == 0
