@@ -274,6 +274,10 @@ class SparseGrids(torch.nn.Module):
         has = self._owners >= 0
         self._owned_copies, self._owning = self._copies[has], self._owners[has]
         self._orphans = self._copies[~has]
+        # 0 at orphan copies, 1 elsewhere: a multiply over the atlas clears their gradients
+        # faster than indexing them (most copies are orphans where the map is a thin shell).
+        self._keep = torch.ones(self.atlas.shape[2:], device=device)
+        self._keep.view(-1)[self._orphans] = 0
         self.stale = True
 
     @torch.no_grad()
@@ -307,7 +311,7 @@ class SparseGrids(torch.nn.Module):
         flat = grad.view(self.channels, -1)
         flat.index_add_(1, self._owning, flat[:, self._owned_copies])
         flat[:, self._owned_copies] = flat[:, self._owning]
-        flat[:, self._orphans] = 0
+        grad.mul_(self._keep)
         self.atlas.grad = grad
 
     def extent(self, level: int = -1) -> torch.Tensor:
