@@ -171,7 +171,8 @@ class Mapper:
         depth = torch.linspace(self.render_cfg.near, 2 * self.cfg.gauge_depth, 64, device=device)
         with torch.no_grad():
             points = origins[:, None] + depth[:, None] * directions[:, None]
-            self.field.allocate(points.view(-1, 3))
+            surface = (depth - self.cfg.gauge_depth).abs().expand(points.shape[:2])
+            self.field.allocate(points.view(-1, 3), surface.reshape(-1))
         optimizer = self._adam(self._init_groups(10.0))
         for _ in range(self.cfg.prior_iters):
             _, uv = random_pixels(1, 1024, self.camera, 0, self.generator, device)

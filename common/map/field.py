@@ -53,6 +53,11 @@ class MapConfig:
         "Scene box (xmin, ymin, zmin, xmax, ymax, zmax) in the first camera's frame "
         "(dense grids only: sparse ones have no bound).",
     )
+    fine_band: float = option(
+        0.0,
+        "Sparse grids: the finest levels (those with colour) are stored only within this "
+        "distance of where rays stop, map units (0: wherever rays see, as the coarse levels).",
+    )
     grids: str = option(
         "dense",
         "dense: every cell of the bound stored; sparse: blocks of cells stored where the "
@@ -85,7 +90,7 @@ class Field(nn.Module):
         self.cfg = cfg
         self.n_color_levels = cfg.color_levels if cfg.color_channels > 0 else 0
         self.grows = False
-        self._seen: list[torch.Tensor] = []
+        self._seen: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         width = cfg.hidden
         layers: list[nn.Module] = []
         size_in = cfg.geometry_channels * len(cfg.voxel_sizes)
@@ -116,24 +121,31 @@ class Field(nn.Module):
         """`(N,)` bool: points where the map may be occupied."""
         raise NotImplementedError
 
-    def allocate(self, points: torch.Tensor) -> None:
-        """Store the cells around `(N, 3)` points (grids that grow; others hold every cell)."""
+    def allocate(self, points: torch.Tensor, surface: torch.Tensor | None = None) -> None:
+        """Store the cells around `(N, 3)` points (grids that grow; others hold every cell);
+        `surface`: each point's distance to where its ray stops (inf: it does not)."""
 
-    def observe(self, points: torch.Tensor) -> None:
-        """Rays see `(N, 3)` points: while `learning`, their cells are stored at the next
-        optimizer step (`adopt_growth`): grids that changed shape inside one forward pass
-        would no longer match the gradients autograd computes for them."""
+    def observe(self, points: torch.Tensor, surface: torch.Tensor | None = None) -> None:
+        """Rays see `(N, 3)` points (`surface`: as in `allocate`): while `learning`, their
+        cells are stored at the next optimizer step (`adopt_growth`): grids that changed
+        shape inside one forward pass would no longer match the gradients autograd computes
+        for them."""
         if self.grows:
             # Blocks span 8 cells and rays are random: a spread-out sample of the points finds
             # the same blocks at a fraction of the cost.
             step = max(1, points.shape[0] // OBSERVED)
-            self._seen.append(points[::step].detach())
+            near = surface[::step].detach() if surface is not None else None
+            self._seen.append((points[::step].detach(), near))
 
     def adopt_growth(self, optimizer: torch.optim.Optimizer | None = None) -> None:
         """Store the cells seen since the last step; fit `optimizer`'s state and the grids'
         gradients to grids that grew (call after backward, before the step)."""
         if self._seen:
-            self.allocate(torch.cat(self._seen))
+            points = torch.cat([p for p, _ in self._seen])
+            surface = None
+            if all(s is not None for _, s in self._seen):
+                surface = torch.cat([s for _, s in self._seen])
+            self.allocate(points, surface)
             self._seen.clear()
 
     def follow(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
@@ -274,9 +286,14 @@ class SparseField(Field):
     def inside(self, p: torch.Tensor) -> torch.Tensor:
         return torch.ones_like(p[:, 0], dtype=torch.bool)
 
-    def allocate(self, points: torch.Tensor) -> None:
-        for grids in self._grids():
-            grids.allocate(points)
+    def allocate(self, points: torch.Tensor, surface: torch.Tensor | None = None) -> None:
+        fine = self.n_color_levels if self.cfg.fine_band > 0 and surface is not None else 0
+        coarse = len(self.cfg.voxel_sizes) - fine
+        self.geometry.allocate(points, slice(0, coarse))
+        near = points if not fine else points[surface < self.cfg.fine_band]
+        self.geometry.allocate(near, slice(coarse, None))
+        if self.n_color_levels:
+            self.color.allocate(near)
 
     def adopt_growth(self, optimizer: torch.optim.Optimizer | None = None) -> None:
         before = [(g.atlas, g.blocks.shape[0]) for g in self._grids()]

@@ -232,7 +232,10 @@ def render_rays(
     points = origins[:, None] + t[..., None] * directions[:, None]
     observe = getattr(field, "observe", None)
     if observe is not None and torch.is_grad_enabled():
-        observe(points[t <= reach[:, None]])
+        seen = t <= reach[:, None]
+        stops = reach < cfg.far  # the ray's transmittance fell: it ends at a surface
+        surface = torch.where(stops[:, None], (t - reach[:, None]).abs(), torch.inf)
+        observe(points[seen], surface[seen])
     out = field(points.reshape(-1, 3), with_color=with_color)
     w = ray_weights(out.occupancy.view(R, S))
     depth = (w * t).sum(dim=-1)

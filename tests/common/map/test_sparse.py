@@ -213,3 +213,17 @@ def test_adam_keeps_every_copy_equal_to_its_owner_while_the_map_grows():
         diff = flat[:, grids._owned_copies] - flat[:, grids._owning]
         assert diff.abs().max() < 1e-6
         assert flat[:, grids._orphans].abs().max() == 0
+
+
+def test_fine_levels_are_stored_only_near_where_rays_stop():
+    cfg = MapConfig(voxel_sizes=(0.64, 0.32, 0.16, 0.08), grids="sparse", fine_band=0.2)
+    field = SparseField(cfg)
+    depth = torch.linspace(0.1, 4.0, 200)
+    points = torch.stack([torch.zeros(200), torch.zeros(200), depth], -1)  # one ray
+    field.allocate(points, (depth - 3.0).abs())  # it stops at 3 m
+    for grids, levels in ((field.geometry, (2, 3)), (field.color, (0, 1))):
+        for level in levels:
+            z = grids.blocks[grids.blocks[:, 0] == level, 3] * BLOCK * grids.voxels[level]
+            assert z.min() >= 2.0 and z.max() <= 3.5  # blocks around the surface only
+    coarse = field.geometry.blocks[field.geometry.blocks[:, 0] == 0, 3] * BLOCK * 0.64
+    assert coarse.min() <= 0.1 and coarse.max() + BLOCK * 0.64 >= 4.0  # the whole ray
