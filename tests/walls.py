@@ -1,9 +1,13 @@
-"""A small camera and a textured wall it looks at, for tests of the window optimizations."""
+"""A small camera, a textured wall it looks at and a small mapper, for tests of the window
+optimizations."""
 
 import torch
 
 from dimslam.common.geometry.camera import Camera
-from dimslam.common.map.field import FieldOutput
+from dimslam.common.map.field import FieldOutput, MapConfig
+from dimslam.common.map.render import RenderConfig
+from dimslam.common.optim.objective import LossConfig
+from dimslam.mapper.mapper import Mapper, MapperConfig
 
 CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
 
@@ -25,3 +29,26 @@ def textured_wall_image(T_wc: torch.Tensor, camera: Camera = CAM) -> torch.Tenso
 def wall(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
     """The map of that wall: occupied from z = 2 on (a sharp step), grey."""
     return FieldOutput(torch.sigmoid(2000 * (p[:, 2] - 2.0)), torch.full_like(p, 0.5))
+
+
+SMALL_MAP = MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0))
+SMALL_RENDER = RenderConfig(n_stratified=8, n_importance=4, importance_rounds=1, far=4.0)
+
+
+def small_mapper(
+    cfg: MapperConfig,
+    map_cfg: MapConfig = SMALL_MAP,
+    render_cfg: RenderConfig = SMALL_RENDER,
+) -> Mapper:
+    """A mapper of a small map seen by `CAM`, for tests that need no trained map."""
+    return Mapper(
+        cfg,
+        map_cfg,
+        LossConfig(patch_sizes=(1, 5), min_views=1, smooth_blocks=4),
+        render_cfg,
+        0.0,
+        50,
+        CAM,
+        torch.device("cpu"),
+        torch.Generator().manual_seed(0),
+    )

@@ -1,31 +1,15 @@
 """Mapper choices that need no trained map: which poses a mapping round moves."""
 
 import torch
-from walls import CAM, textured_wall_image
+from walls import small_mapper, textured_wall_image
 
 from dimslam.common.geometry import pose
-from dimslam.common.map.field import MapConfig
-from dimslam.common.map.render import RenderConfig
-from dimslam.common.optim.objective import LossConfig
 from dimslam.common.optim.window import FrameState
 from dimslam.mapper.mapper import Mapper, MapperConfig
 
-SMALL_MAP = MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0))
-
 
 def mapper(**kw) -> Mapper:
-    cfg = MapperConfig(**kw)
-    return Mapper(
-        cfg,
-        SMALL_MAP,
-        LossConfig(patch_sizes=(1, 5), min_views=1, smooth_blocks=4),
-        RenderConfig(n_stratified=8, n_importance=4, importance_rounds=1, far=4.0),
-        0.0,
-        50,
-        CAM,
-        torch.device("cpu"),
-        torch.Generator().manual_seed(0),
-    )
+    return small_mapper(MapperConfig(**kw))
 
 
 def test_anchored_keyframes_keep_their_poses_while_recent_frames_move():

@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from walls import CAM
+from walls import CAM, SMALL_MAP, small_mapper
 
 from dimslam.common.geometry import pose
 from dimslam.common.map.field import DenseField, MapConfig, SparseField, make_field
@@ -14,7 +14,6 @@ from dimslam.common.map.render import RenderConfig, render_pixels
 from dimslam.common.map.sparse import BLOCK, COLUMNS, SparseGrids
 from dimslam.common.net.exchange import load_map, to_snapshot
 from dimslam.common.net.messages import MapSnapshot, MessageError
-from dimslam.common.optim.objective import LossConfig
 from dimslam.common.optim.window import FrameState
 from dimslam.mapper.mapper import Mapper, MapperConfig
 
@@ -143,17 +142,11 @@ def test_a_sparse_field_matches_a_dense_one_where_nothing_was_learned():
     assert torch.allclose(a.rgb, b.rgb, atol=1e-6)
 
 
-def small_mapper(grids: str) -> Mapper:
-    return Mapper(
+def sparse_mapper(grids: str) -> Mapper:
+    return small_mapper(
         MapperConfig(prior_iters=60),
-        MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0), grids=grids),
-        LossConfig(patch_sizes=(1, 5), min_views=1, smooth_blocks=4),
+        replace(SMALL_MAP, grids=grids),
         RenderConfig(n_stratified=16, n_importance=8, importance_rounds=1, far=6.0),
-        0.0,
-        50,
-        CAM,
-        torch.device("cpu"),
-        torch.Generator().manual_seed(0),
     )
 
 
@@ -165,7 +158,7 @@ def test_the_map_grows_to_follow_a_camera_that_leaves_the_initial_bounds():
     uv = torch.tensor([[40.0, 30.0], [10.0, 50.0], [70.0, 12.0]])
     depths = {}
     for grids in ("sparse", "dense"):
-        m = small_mapper(grids)
+        m = sparse_mapper(grids)
         m.fit_prior(FrameState(0, 0.0, None, torch.eye(4)))
         before = m.field.bound.clone()
         m.fit_prior(FrameState(1, 0.1, None, far))
@@ -179,7 +172,7 @@ def test_the_map_grows_to_follow_a_camera_that_leaves_the_initial_bounds():
 
 
 def test_a_sparse_snapshot_loads_into_a_fresh_field_of_any_size():
-    m = small_mapper("sparse")
+    m = sparse_mapper("sparse")
     m.fit_prior(FrameState(0, 0.0, None, torch.eye(4)))
     snap = MapSnapshot.from_bytes(to_snapshot(1, 0, "d", m.field, [], []).to_bytes())
     fresh = make_field(m.field.cfg).requires_grad_(False)
