@@ -90,7 +90,6 @@ class Field(nn.Module):
         self.cfg = cfg
         self.n_color_levels = cfg.color_levels if cfg.color_channels > 0 else 0
         self.grows = False
-        self._seen: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         width = cfg.hidden
         layers: list[nn.Module] = []
         size_in = cfg.geometry_channels * len(cfg.voxel_sizes)
@@ -126,32 +125,14 @@ class Field(nn.Module):
         `surface`: each point's distance to where its ray stops (inf: it does not)."""
 
     def observe(self, points: torch.Tensor, surface: torch.Tensor | None = None) -> None:
-        """Rays see `(N, 3)` points (`surface`: as in `allocate`): while `learning`, their
-        cells are stored at the next optimizer step (`adopt_growth`): grids that changed
-        shape inside one forward pass would no longer match the gradients autograd computes
-        for them."""
-        if self.grows:
-            # Blocks span 8 cells and rays are random: a spread-out sample of the points finds
-            # the same blocks at a fraction of the cost.
-            step = max(1, points.shape[0] // OBSERVED)
-            near = surface[::step].detach() if surface is not None else None
-            self._seen.append((points[::step].detach(), near))
+        """Rays see `(N, 3)` points (`surface`: as in `allocate`); grids that grow store their
+        cells while `learning`."""
 
     def adopt_growth(self, optimizer: torch.optim.Optimizer | None = None) -> None:
-        """Store the cells seen since the last step; fit `optimizer`'s state and the grids'
-        gradients to grids that grew (call after backward, before the step)."""
-        if self._seen:
-            points = torch.cat([p for p, _ in self._seen])
-            surface = None
-            if all(s is not None for _, s in self._seen):
-                surface = torch.cat([s for _, s in self._seen])
-            self.allocate(points, surface)
-            self._seen.clear()
+        """Before an optimizer step: fit it to grids that grew since the last one."""
 
     def follow(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
-        """Hook `optimizer` (over this field's parameters, fresh) up to grids that grow and
-        keep copies of their cells: `adopt_growth` before each step."""
-        optimizer.register_step_pre_hook(lambda opt, *_: self.adopt_growth(opt))
+        """Hook `optimizer` (over this field's parameters, fresh) up to grids that grow."""
         return optimizer
 
     @contextmanager
@@ -162,7 +143,6 @@ class Field(nn.Module):
             yield self
         finally:
             self.grows = previous
-            self._seen.clear()  # seen after the last step: the next optimization sees them again
 
     def decoder_parameters(self) -> list[nn.Parameter]:
         """The MLP decoder's weights."""
@@ -258,6 +238,7 @@ class SparseField(Field):
 
     def __init__(self, cfg: MapConfig, device: torch.device | str | None = None) -> None:
         super().__init__(cfg)
+        self._seen: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         voxels = tuple(cfg.voxel_sizes)
         self.geometry = SparseGrids(voxels, cfg.geometry_channels, cfg.init_std)
         if self.n_color_levels:
@@ -295,9 +276,29 @@ class SparseField(Field):
         if self.n_color_levels:
             self.color.allocate(near)
 
+    def observe(self, points: torch.Tensor, surface: torch.Tensor | None = None) -> None:
+        """While `learning`, the cells are stored at the next optimizer step
+        (`adopt_growth`): grids that changed shape inside one forward pass would no longer
+        match the gradients autograd computes for them."""
+        if self.grows:
+            # Blocks span 8 cells and rays are random: a spread-out sample of the points finds
+            # the same blocks at a fraction of the cost.
+            step = max(1, points.shape[0] // OBSERVED)
+            near = surface[::step].detach() if surface is not None else None
+            self._seen.append((points[::step].detach(), near))
+
     def adopt_growth(self, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Store the cells seen since the last step; the optimizer steps the grown atlases
+        (its state padded, new copies of old owners given their owners' state) and their
+        gradients are settled (`SparseGrids.settle_gradient`)."""
         before = [(g.atlas, g.blocks.shape[0]) for g in self._grids()]
-        super().adopt_growth(optimizer)
+        if self._seen:
+            points = torch.cat([p for p, _ in self._seen])
+            surface = None
+            if all(s is not None for _, s in self._seen):
+                surface = torch.cat([s for _, s in self._seen])
+            self.allocate(points, surface)
+            self._seen.clear()
         for grids, (old, blocks) in zip(self._grids(), before, strict=True):
             if grids.atlas is not old:
                 if old.grad is not None:
@@ -312,10 +313,19 @@ class SparseField(Field):
                         grids.mirror(value)
             grids.settle_gradient()
 
+    @contextmanager
+    def learning(self):
+        with super().learning():
+            try:
+                yield self
+            finally:
+                self._seen.clear()  # seen after the last step: the next optimization sees them
+
     def follow(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
         for grids in self._grids():
             grids.stale = True  # copies and owners equal at the optimizer's start
-        return super().follow(optimizer)
+        optimizer.register_step_pre_hook(lambda opt, *_: self.adopt_growth(opt))
+        return optimizer
 
     def memory_bytes(self) -> int:
         decoder = sum(t.numel() * t.element_size() for t in self.decoder_parameters())
