@@ -78,8 +78,9 @@ class SparseGrids(torch.nn.Module):
         self._sync()
         x = p[:, None, :] / self.voxels[None, :, None]  # (N, L, 3) in vertices
         base = torch.floor(x)
-        brick = self._bricks(base.int())
-        local = x - base + (base.int() & (BLOCK - 1)).to(x.dtype)  # in [0, BLOCK)
+        vertex = base.int()
+        brick = self._bricks(vertex)
+        local = x - base + (vertex & (BLOCK - 1)).to(x.dtype)  # in [0, BLOCK)
         corner = torch.stack([(brick & (COLUMNS - 1)) * BRICK, 0 * brick, (brick >> 6) * BRICK], -1)
         grid = (corner + local) * self._scale - 1  # atlas coordinates in [-1, 1]
         out = F.grid_sample(
@@ -94,27 +95,25 @@ class SparseGrids(torch.nn.Module):
     def allocated(self, p: torch.Tensor) -> torch.Tensor:
         """`(N,)` bool: the block holding the point's cell on the finest level is stored
         (with its upper neighbours where the cell reaches into them)."""
-        x = p / self.voxels[-1]
-        base = torch.floor(x).int()
-        corners = base[:, None, :] + self._unit  # (N, 8, 3)
-        level = torch.full(corners.shape[:2], self.levels - 1, device=p.device)
-        found = self._find(level.reshape(-1), (corners >> 3).reshape(-1, 3).long())
-        return (found >= 0).view(-1, 8).all(dim=-1)
+        base = torch.floor(p[:, None, :] / self.voxels[None, :, None]).int()
+        return self._complete(base)[:, -1]
 
     def _bricks(self, vertex: torch.Tensor) -> torch.Tensor:
         """Brick `(N, L)` of the block owning vertices `(N, L, 3)` (one per level); 0 if none."""
-        rel = (vertex >> 3) - self._origin  # floor division by BLOCK (arithmetic shift)
-        inside = ((rel >= 0) & (rel < self._dims)).all(dim=-1)
-        flat = (rel[..., 2] * self._dims[:, 1] + rel[..., 1]) * self._dims[:, 0] + rel[..., 0]
-        return self._index[torch.where(inside, flat + self._offset, -1)]  # last entry: 0
+        # floor division by BLOCK (arithmetic shift)
+        return self._slot((vertex >> 3) - self._origin, self._dims, self._offset)
 
     def _find(self, level: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """Numbers `(M,)` of blocks `(M, 3)` on levels `(M,)`; -1 where not stored."""
         rel = block - self._origin[level]
-        dims = self._dims[level]
+        return self._slot(rel, self._dims[level], self._offset[level]).long() - 1
+
+    def _slot(self, rel: torch.Tensor, dims: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+        """Index entries (brick, 0 if none) of blocks at `rel` `(..., 3)` in their level's box
+        of `dims` `(..., 3)`, whose entries start at `offset`."""
         inside = ((rel >= 0) & (rel < dims)).all(dim=-1)
-        flat = (rel[:, 2] * dims[:, 1] + rel[:, 1]) * dims[:, 0] + rel[:, 0]
-        return self._index[torch.where(inside, flat + self._offset[level], -1)].long() - 1
+        flat = (rel[..., 2] * dims[..., 1] + rel[..., 1]) * dims[..., 0] + rel[..., 0]
+        return self._index[torch.where(inside, flat + offset, -1)]  # last entry: 0
 
     def _complete(self, base: torch.Tensor) -> torch.Tensor:
         """`(N, L)` bool: all 8 corners of the cells with lowest corners `base` `(N, L, 3)`
