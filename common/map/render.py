@@ -135,17 +135,7 @@ def sample_depths(
     transmittance falls below `SEEN` (beyond it nothing the ray renders can change)."""
     R = origins.shape[0]
     with torch.no_grad():
-        steps = torch.arange(cfg.n_stratified, device=origins.device, dtype=origins.dtype)
-        if generator is not None:
-            shape = (R, cfg.n_stratified)
-            jitter = torch.rand(
-                shape, device=origins.device, dtype=origins.dtype, generator=generator
-            )
-        else:
-            jitter = torch.full(
-                (R, cfg.n_stratified), 0.5, device=origins.device, dtype=origins.dtype
-            )
-        t = cfg.near + (cfg.far - cfg.near) * (steps + jitter) / cfg.n_stratified
+        t = _stratified(cfg.near, cfg.far - cfg.near, R, cfg.n_stratified, origins, generator)
         occ = _occupancy(field, origins, directions, t)
         seen_t = t
         for round_ in range(cfg.importance_rounds):
@@ -164,6 +154,20 @@ def sample_depths(
     return t, reach
 
 
+def _stratified(
+    lo, span, rays: int, count: int, like: torch.Tensor, generator: torch.Generator | None
+) -> torch.Tensor:
+    """`(rays, count)` depths stratified in [lo, lo + span] (floats, or `(rays, 1)`): jittered
+    when a generator is given, interval midpoints otherwise; `like` gives device and dtype."""
+    steps = torch.arange(count, device=like.device, dtype=like.dtype)
+    shape = (rays, count)
+    if generator is not None:
+        u = torch.rand(shape, device=like.device, dtype=like.dtype, generator=generator)
+    else:
+        u = torch.full(shape, 0.5, device=like.device, dtype=like.dtype)
+    return lo + span * (steps + u) / count
+
+
 def surface_depths(
     depth: torch.Tensor, cfg: RenderConfig, generator: torch.Generator | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -173,13 +177,7 @@ def surface_depths(
     R = depth.shape[0]
 
     def stratified(lo: torch.Tensor, hi: torch.Tensor, count: int) -> torch.Tensor:
-        steps = torch.arange(count, device=depth.device, dtype=depth.dtype)
-        if generator is not None:
-            shape = (R, count)
-            u = torch.rand(shape, device=depth.device, dtype=depth.dtype, generator=generator)
-        else:
-            u = torch.full((R, count), 0.5, device=depth.device, dtype=depth.dtype)
-        return lo[:, None] + (hi - lo)[:, None] * (steps + u) / count
+        return _stratified(lo[:, None], (hi - lo)[:, None], R, count, depth, generator)
 
     d = depth.clamp(cfg.near, cfg.far)
     lo = (d * (1 - cfg.surface_band)).clamp_min(cfg.near)
