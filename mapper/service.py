@@ -53,6 +53,7 @@ from dimslam.common.net.messages import (
     MapSnapshot,
     MessageError,
     PoseMessage,
+    decode_or_end,
     message_type,
 )
 from dimslam.common.net.transport import (
@@ -114,7 +115,11 @@ class MapperService:
         self.seed: MapSnapshot | None = None
         self.rejects = Rejects()
         self.backlog: list[MappingBatch] = []  # received, not yet mapped
-        self.batches_in = Inbox(BATCH_QUEUE, "mapping batches")
+        # Frames of the stream admitted so far: a batch of none but these is a duplicate.
+        self.received: set[int] = set()
+        self.ended_ns = -1  # the send stamp of the last end of stream
+        self.stream_open = False  # a batch came after the last end of stream (or none)
+        self.batches_in = Inbox(BATCH_QUEUE, "mapping batches", self._admit)
         self.mesh_queries: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         stop.watch(self.batches_in)
         self.map_pub = publisher(session, keys.map, lossless=True)
@@ -140,7 +145,11 @@ class MapperService:
         return self.back.rounds if self.back is not None else 0
 
     def _peer_changed(self, role: str, alive: bool) -> None:
-        if role == "tracker" and not alive:
+        if role != "tracker" or alive:
+            return
+        if not self.stream_open and self.ended_ns >= 0:  # it ended its stream, then exited
+            log.info("the tracker has left after its end of stream")
+        else:
             log.warning("the tracker is gone: the map is kept and queries are still answered")
 
     # -- queries (zenoh's thread: cheap answers only; the mesh waits for the main loop) ------
@@ -187,10 +196,10 @@ class MapperService:
             if self.backlog:
                 self.backlog += self._parse(self.batches_in.drain())
             else:
-                payload = self.batches_in.get(WAIT_S)
-                if payload is None:
+                item = self.batches_in.get(WAIT_S)
+                if item is None:
                     continue
-                self.backlog = self._parse([payload, *self.batches_in.drain()])
+                self.backlog = self._parse([item, *self.batches_in.drain()])
             n = 1 if len(self.backlog) <= MAX_BACKLOG else len(self.backlog)
             take, self.backlog = self.backlog[:n], self.backlog[n:]
             if take and self._receive(take):
@@ -218,20 +227,47 @@ class MapperService:
     def keyframes(self) -> list[FrameState]:
         return [f for f in self.frames if f.keyframe]
 
-    def _parse(self, payloads: list[bytes]) -> list[MappingBatch]:
-        """The mapping batches among `payloads`; an end of stream or a seed map is noted."""
+    def _admit(self, payload: bytes) -> MappingBatch | MapSnapshot | EndOfStream | None:
+        """A mapping-topic message decoded on zenoh's thread; None (counted) if it is not one,
+        or is a batch of frames all received before (sent again, or a replay): it would map
+        them again, and a batch 0 would even drop the map. After an end of stream a new
+        stream may number its frames from 0 again; a batch sent before that end (its stamp,
+        on the tracker's clock as the end's) belongs to the old stream."""
+        try:
+            if message_type(payload) == MapSnapshot.TYPE:
+                snap = MapSnapshot.from_bytes(payload)
+                if snap.config != self.digest:
+                    raise MessageError("a seed map with other settings")
+                return snap
+            msg = decode_or_end(payload, MappingBatch)
+            if isinstance(msg, EndOfStream):
+                self.received.clear()
+                self.ended_ns = max(self.ended_ns, msg.stamp_ns)
+                self.stream_open = False
+                return msg
+            if msg.stamp_ns <= self.ended_ns:
+                raise MessageError(f"batch {msg.round}: sent before the end of its stream")
+            seqs = {f.seq for f in msg.frames}
+            if seqs <= self.received:
+                raise MessageError(f"batch {msg.round}: every frame received before")
+            self.received |= seqs
+            self.stream_open = True
+            return msg
+        except MessageError as e:
+            self.rejects("mapping", e)
+            return None
+
+    def _parse(self, items: list) -> list[MappingBatch]:
+        """The mapping batches among `items` (admitted messages); an end of stream or a seed
+        map is noted."""
         batches = []
-        for p in payloads:
-            try:
-                kind = message_type(p)
-                if kind == EndOfStream.TYPE:
-                    self.ended = True
-                elif kind == MapSnapshot.TYPE:
-                    self._seed(MapSnapshot.from_bytes(p))
-                else:
-                    batches.append(MappingBatch.from_bytes(p))
-            except MessageError as e:
-                self.rejects("mapping", e)
+        for item in items:
+            if isinstance(item, EndOfStream):
+                self.ended = True
+            elif isinstance(item, MapSnapshot):
+                self._seed(item)
+            else:
+                batches.append(item)
         return batches
 
     def _keep_pending(self) -> None:
@@ -245,10 +281,10 @@ class MapperService:
             batches = waiting
             waiting = []
             if not batches:
-                payload = self.batches_in.get(min(left, WAIT_S))
-                if payload is None:
+                item = self.batches_in.get(min(left, WAIT_S))
+                if item is None:
                     continue
-                batches = self._parse([payload, *self.batches_in.drain()])
+                batches = self._parse([item, *self.batches_in.drain()])
             batches = [b for b in batches if b.round > 0]  # never a new stream at a stop
             if batches and self.version > 0 and self._receive(batches):
                 kept += sum(len(b.frames) for b in batches)
@@ -285,9 +321,7 @@ class MapperService:
 
     def _seed(self, snap: MapSnapshot) -> None:
         """A tracker's map, sent because this mapper had none: kept for its next batch."""
-        if snap.config != self.digest:
-            self.rejects("mapping", MessageError("a seed map with other settings"))
-        elif self.back is None:
+        if self.back is None:
             self.seed = snap
         else:
             log.info("a tracker offered map version %d; this mapper keeps its own", snap.version)

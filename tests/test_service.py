@@ -180,8 +180,11 @@ def test_tracker_keeps_publishing_when_the_mapper_dies(sequence, tmp_path):
                 "dimslam.mapper.cli", "--listen", mapper_ep, "--connect", tracker_ep, *common,
                 log=logs["mapper"],
             ),
+            # With bounded staleness, the mapper that does not come back is waited for only
+            # --mapper-grace seconds.
             "tracker": _start(
                 "dimslam.tracker.cli", "--listen", tracker_ep, "--connect", mapper_ep, *common,
+                "--map-lag", "0", "--mapper-grace", "2",
                 log=logs["tracker"],
             ),
         }  # fmt: skip
@@ -219,7 +222,8 @@ def test_tracker_keeps_publishing_when_the_mapper_dies(sequence, tmp_path):
                 f.close()
             presence.close()
             sub.undeclare()
-    assert "the mapper is gone" in (tmp_path / "tracker.log").read_text()
+    log = (tmp_path / "tracker.log").read_text()
+    assert "the mapper is gone" in log and "did not come back within 2 s" in log
 
 
 class Service:
@@ -323,13 +327,13 @@ def test_a_restarted_mapper_gets_the_trackers_map(sequence, tmp_path):
 
 def test_a_killed_mapper_resumes_from_its_checkpoint(sequence, tmp_path):
     """SIGKILL, then `--resume`: the new mapper goes on with its own map from disk (no map is
-    asked of the tracker), the tracker takes its maps, every frame gets a pose, and SIGTERM
-    writes a checkpoint holding the whole stream."""
+    asked of the tracker), the tracker (bounded staleness) waits for it and takes its maps,
+    every frame gets a pose, and SIGTERM writes a checkpoint holding the whole stream."""
     ckpt = tmp_path / "ckpt"
     saving = ["--checkpoint", str(ckpt), "--checkpoint-every", "1"]
     with Service(tmp_path, "resume") as svc:
         mapper = svc.start("mapper", *saving)
-        svc.start("tracker")
+        svc.start("tracker", "--map-lag", "1", "--mapper-grace", "600")
         assert svc.presence.wait_for("tracker", 60) and svc.presence.wait_for("mapper", 60)
         svc.start("camera", str(sequence), "--rate", "2")
         resumed = []
@@ -347,7 +351,10 @@ def test_a_killed_mapper_resumes_from_its_checkpoint(sequence, tmp_path):
         assert set(seen) == set(range(FRAMES))
         log = svc.log("mapper")
         assert "resumed from" in log and "continuing the tracker's map" not in log
-        assert "the new mapper has no map" not in svc.log("tracker")
+        tracker_log = svc.log("tracker")
+        assert "the new mapper has no map" not in tracker_log
+        assert "waiting up to 600 s for it to come back" in tracker_log
+        assert "did not come back" not in tracker_log
         snap = svc.maps.get(120)
         assert snap is not None, "the resumed mapper published no snapshot"
         assert resumed[0].poll() is None

@@ -55,7 +55,7 @@ from dimslam.common.net.messages import (
     MapSnapshot,
     MessageError,
     PoseMessage,
-    message_type,
+    decode_or_end,
     now_ns,
 )
 from dimslam.common.net.transport import (
@@ -65,6 +65,7 @@ from dimslam.common.net.transport import (
     Presence,
     Rejects,
     Stop,
+    pose_publisher,
     publisher,
 )
 from dimslam.common.optim.window import FrameState
@@ -75,6 +76,8 @@ log = logging.getLogger(__name__)
 
 WAIT_S = 0.5
 """How long a loop waits on its inbox before checking the stop event again."""
+MAPPER_GRACE_S = 30.0
+"""Default `--mapper-grace`: how long a tracker with `--map-lag` waits for a mapper that left."""
 
 
 @dataclass
@@ -87,6 +90,8 @@ class TrackerStats:
         tracked: frames given a pose by the solver.
         lost: frames the solver could not place (published as lost, no pose).
         skipped_live: live frames dropped because a newer one was already waiting.
+        repeated: frames not newer than one taken before, ignored: sent again by the camera
+            after a link cut (it sends those without a pose again), or out of order.
         snapshots: map snapshots swapped in.
         track_seconds: per tracked or lost frame, the tracking step's time.
         refresh_seconds: per snapshot, the time the solver took to refresh what it caches.
@@ -99,6 +104,7 @@ class TrackerStats:
     tracked: int = 0
     lost: int = 0
     skipped_live: int = 0
+    repeated: int = 0
     snapshots: int = 0
     track_seconds: list[float] = field(default_factory=list)
     refresh_seconds: list[float] = field(default_factory=list)
@@ -116,6 +122,7 @@ class TrackerStats:
             "tracked": self.tracked,
             "frames_lost": self.lost,
             "frames_dropped": self.skipped_live + dropped_in_queue,
+            "frames_repeated": self.repeated,
             "snapshots": self.snapshots,
         }
         for name, sel in (("busy", busy), ("idle", ~busy)):
@@ -143,6 +150,7 @@ class TrackerService:
         keys: Keys,
         stop: Stop,
         map_lag: int | None = None,
+        mapper_grace: float = MAPPER_GRACE_S,
     ) -> None:
         self.cfg = cfg
         self.device = device
@@ -151,6 +159,10 @@ class TrackerService:
         # Bounded staleness (offline runs): at most this many sent batches unmapped before the
         # next frame is tracked; None: never wait (live cameras).
         self.map_lag = map_lag
+        # With map_lag, a mapper that left is waited for this long (it may come back with
+        # --resume) before tracking goes on without it.
+        self.mapper_grace = mapper_grace
+        self.mapper_left: float | None = None  # monotonic time the mapper's token vanished
         self.digest = map_digest(cfg)
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         self.field = make_field(cfg.map, device=device).requires_grad_(False)
@@ -170,16 +182,19 @@ class TrackerService:
         self.mapper_appeared = threading.Event()
         self.stats = TrackerStats()
         self.rejects = Rejects()
-        self.mapper_gone_logged = False
-        self.frames_in = Inbox(FRAME_QUEUE, "frames")
-        self.maps_in = Inbox(1, "map snapshots")  # newest wins
+        # Checked on arrival (`_admit_frame`, `_admit_map`): a flood of bad messages never
+        # pushes a real one out of these queues.
+        self.newest_seq = -1  # the newest frame admitted, in the camera's numbering
+        self.map_floor = 0  # snapshots of this version or older are refused
+        self.frames_in = Inbox(FRAME_QUEUE, "frames", self._admit_frame)
+        self.maps_in = Inbox(1, "map snapshots", self._admit_map)  # newest wins
         stop.watch(self.frames_in, self.maps_in)
         # Keep references to everything declared (zenoh.md trap 4).
         self.subscribers = [
             session.declare_subscriber(keys.frames, self.frames_in.callback),
             session.declare_subscriber(keys.map, self.maps_in.callback),
         ]
-        self.pose_pub = publisher(session, keys.poses, lossless=True, urgent=True)
+        self.pose_pub = pose_publisher(session, keys.poses)
         self.mapping_pub = publisher(session, keys.mapping, lossless=True)
         self.presence = Presence(session, keys, "tracker", self._peer_changed)
         self.session = session
@@ -194,11 +209,22 @@ class TrackerService:
         if role != "mapper":
             return
         if not alive:
-            log.warning(
-                "the mapper is gone: tracking goes on with map version %d", self.map_version
-            )
+            self.mapper_left = time.monotonic()
+            if self.map_lag is not None:
+                log.warning(
+                    "the mapper is gone (map version %d): waiting up to %g s for it to come "
+                    "back (--mapper-grace) once more than %d batches are unmapped",
+                    self.map_version,
+                    self.mapper_grace,
+                    self.map_lag,
+                )
+            else:
+                log.warning(
+                    "the mapper is gone: tracking goes on with map version %d", self.map_version
+                )
         else:
             log.info("a mapper is present")
+            self.mapper_left = None
             self.mapper_appeared.set()
 
     def _query(self, what: str, timeout: float) -> bytes | None:
@@ -276,6 +302,7 @@ class TrackerService:
         except MessageError as e:
             self.rejects("query/map", e)
             return
+        self.map_floor = min(self.map_floor, snap.version)
         if snap.version < self.map_version:
             log.info(
                 "the mapper resumed map version %d (this tracker had %d): its maps are taken "
@@ -309,10 +336,10 @@ class TrackerService:
                 if (self.init_sent and not self.initialized) or self._map_too_old():
                     self.maps_in_wait()
                     continue
-                payload = self.frames_in.get(WAIT_S)
-                if payload is None:
+                msg = self.frames_in.get(WAIT_S)
+                if msg is None:
                     continue
-                if self._handle(payload):
+                if self._handle(msg):
                     break
                 bar.update(
                     self.stats.frames,
@@ -326,19 +353,52 @@ class TrackerService:
         return 0
 
     def maps_in_wait(self) -> None:
-        payload = self.maps_in.get(WAIT_S)
-        if payload is not None:
-            self.maps_in.put(payload)  # applied at the top of the loop, between frames
+        snap = self.maps_in.get(WAIT_S)
+        if snap is not None:
+            self.maps_in.put(snap)  # applied at the top of the loop, between frames
 
-    def _handle(self, payload: bytes) -> bool:
+    def _admit_frame(self, payload: bytes) -> FrameMessage | EndOfStream | None:
+        """A frames-topic message decoded on zenoh's thread; None (counted) if it is not a
+        frame or an end, or is a frame not newer than the newest one admitted (`repeated`):
+        the camera sends again the frames without a pose when a tracker comes back, and this
+        one may have had them; the motion model cannot take one out of order anyway."""
+        try:
+            msg = decode_or_end(payload, FrameMessage)
+            if isinstance(msg, FrameMessage):
+                if msg.seq <= self.newest_seq:
+                    self.stats.repeated += 1
+                    return None
+                self.newest_seq = msg.seq
+        except MessageError as e:
+            self.rejects("frames", e)
+            return None
+        return msg
+
+    def _admit_map(self, payload: bytes) -> MapSnapshot | None:
+        """A snapshot decoded on zenoh's thread; None (counted) if it is not one, has other
+        settings, or is not newer than one already taken: it would push the newest out of
+        its queue of one."""
+        try:
+            snap = MapSnapshot.from_bytes(payload)
+            if snap.config != self.digest:
+                raise MessageError(f"snapshot {snap.version} has other map settings")
+            if snap.version <= max(self.map_floor, self.map_version):
+                raise MessageError(
+                    f"snapshot {snap.version}: not newer than version "
+                    f"{max(self.map_floor, self.map_version)} (a duplicate or out of order)"
+                )
+            self.map_floor = snap.version
+        except MessageError as e:
+            self.rejects("map", e)
+            return None
+        return snap
+
+    def _handle(self, msg: FrameMessage | EndOfStream) -> bool:
         """Process one frames-topic message; True at the end of the stream."""
         try:
-            kind = message_type(payload)
-            if kind == EndOfStream.TYPE:
-                end = EndOfStream.from_bytes(payload)
-                log.info("end of stream after %d frames", end.frames)
+            if isinstance(msg, EndOfStream):
+                log.info("end of stream after %d frames", msg.frames)
                 return True
-            msg = FrameMessage.from_bytes(payload)
             self.stats.received += 1
             if msg.live and len(self.frames_in) > 0:
                 self.stats.skipped_live += 1  # a newer live frame is waiting: this one is stale
@@ -396,13 +456,30 @@ class TrackerService:
             self._send_batch(self.front.take_batch())
 
     def _unmapped(self) -> int:
-        """Batches sent to a live mapper that no snapshot covers yet (0 without a mapper)."""
-        if not self.presence.alive("mapper"):
+        """Batches sent to a mapper that no snapshot covers yet (0 without a mapper)."""
+        if not self._mapper_expected():
             return 0
         return max(0, self.round - 1 - self.map_round)
 
+    def _mapper_expected(self) -> bool:
+        """A mapper is alive, or left less than `mapper_grace` seconds ago (a restart with
+        `--resume` takes seconds)."""
+        if self.presence.alive("mapper"):
+            return True
+        if self.mapper_left is None:
+            return False
+        if time.monotonic() - self.mapper_left <= self.mapper_grace:
+            return True
+        log.warning(
+            "the mapper did not come back within %g s: tracking goes on with map version %d",
+            self.mapper_grace,
+            self.map_version,
+        )
+        self.mapper_left = None
+        return False
+
     def _map_too_old(self) -> bool:
-        """With `map_lag`: more batches sent to a live mapper are unmapped than it allows."""
+        """With `map_lag`: more batches sent to a mapper are unmapped than it allows."""
         return self.map_lag is not None and self.initialized and self._unmapped() > self.map_lag
 
     def _mapper_busy(self) -> bool:
@@ -434,19 +511,8 @@ class TrackerService:
     # -- snapshots --------------------------------------------------------------------------
 
     def _apply_snapshots(self) -> None:
-        payload = self.maps_in.get(0.0)
-        if payload is None:
-            return
-        try:
-            snap = MapSnapshot.from_bytes(payload)
-        except MessageError as e:
-            self.rejects("map", e)
-            return
-        if snap.config != self.digest:
-            self.rejects(
-                "map",
-                MessageError(f"snapshot {snap.version} has other map settings ({snap.config})"),
-            )
+        snap = self.maps_in.get(0.0)  # decoded and checked by `_admit_map`
+        if snap is None:
             return
         if snap.version <= self.map_version:
             return
@@ -496,7 +562,7 @@ class TrackerService:
         self.pose_pub.put(end)
         log.info(
             "%d frames, %d tracked, %d lost, %d poses published, %d snapshots, %d rejected, "
-            "%d live frames skipped, %d dropped",
+            "%d live frames skipped, %d dropped, %d repeated",
             self.stats.frames,
             self.stats.tracked,
             self.stats.lost,
@@ -505,6 +571,7 @@ class TrackerService:
             self.rejects.count,
             self.stats.skipped_live,
             self.frames_in.dropped,
+            self.stats.repeated,
         )
 
     def online_trajectory(self) -> Trajectory:

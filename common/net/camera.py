@@ -22,6 +22,7 @@ import math
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 
 import zenoh
@@ -35,7 +36,7 @@ from dimslam.common.net.messages import (
     FrameMessage,
     MessageError,
     PoseMessage,
-    message_type,
+    decode_or_end,
 )
 from dimslam.common.net.service import (
     TICK_S,
@@ -51,6 +52,7 @@ from dimslam.common.net.transport import (
     Rejects,
     Stop,
     open_session,
+    pose_subscriber,
     publisher,
 )
 from dimslam.common.progress import Progress
@@ -157,6 +159,7 @@ class _PoseMark:
         self.last_sent = -1
         self.ended = False
         self.ended_early = False  # the tracker ended while frames were held back for it
+        self.resend = False  # a tracker is back: frames without a pose go to it again
         self.rejects = Rejects()
         self._cond = threading.Condition()
 
@@ -164,33 +167,43 @@ class _PoseMark:
         # A pose is ~200 bytes: decoding it on zenoh's thread costs less than queueing it.
         payload = sample.payload.to_bytes()
         try:
-            kind = message_type(payload)
-            seq = PoseMessage.from_bytes(payload).seq if kind == PoseMessage.TYPE else None
+            msg = decode_or_end(payload, PoseMessage)
+            seq = msg.seq if isinstance(msg, PoseMessage) else None
+            if seq is not None and seq > self.last_sent:
+                # It would release the lockstep for frames the tracker has not seen.
+                raise MessageError(f"a pose of frame {seq}, which was never sent")
         except MessageError as e:
             self.rejects(self.topic, e)
             return
         with self._cond:
-            self.ended = self.ended or kind == EndOfStream.TYPE
+            self.ended = self.ended or isinstance(msg, EndOfStream)
             if seq is not None:
                 self.highest = max(self.highest, seq)
             self._cond.notify_all()
 
-    def forget_pending(self) -> None:
-        """A new tracker: the frames sent to the one before will get no pose; stop waiting
-        for them (lockstep would otherwise wait forever)."""
+    def tracker_back(self) -> None:
+        """A tracker came back (a new one, or the same one after a link cut): the frames
+        without a pose are sent again (`take_resend`), since the ones it had may be lost."""
         with self._cond:
-            self.highest = max(self.highest, self.last_sent)
+            self.resend = True
             self._cond.notify_all()
 
+    def take_resend(self) -> bool:
+        """Whether frames are to be sent again (once per `tracker_back`)."""
+        with self._cond:
+            due, self.resend = self.resend, False
+            return due
+
     def wait_until(self, seq: int, ahead: int, stop: Stop) -> bool:
-        """Wait until frame `seq` is fewer than `ahead` frames beyond the last pose.
+        """Wait until frame `seq` is fewer than `ahead` frames beyond the last pose, or frames
+        are to be sent again (`take_resend`).
 
         Returns:
             False if the stop event was set or the tracker ended its stream first.
         """
         warn_at = time.monotonic() + STALL_WARN_S
         with self._cond:
-            while seq - (self.highest + 1) >= ahead:
+            while seq - (self.highest + 1) >= ahead and not self.resend:
                 self.ended_early = self.ended
                 if stop or self.ended:
                     return False
@@ -277,19 +290,42 @@ def _stream(
         total = args.max_frames if total is None else min(total, args.max_frames)
     bar = Progress(total, "sent")
     sent = 0
+    # Frames sent and not yet posed, for a tracker that comes back (live frames are not kept:
+    # a late one is worth nothing to the tracker).
+    unposed: deque[tuple[int, bytes]] = deque(maxlen=0 if live else args.ahead)
+
+    def send_unposed_again() -> None:
+        again = [payload for seq, payload in unposed if seq > mark.highest]
+        if again and tracker_ready():
+            log.info("sending the %d frames without a pose again", len(again))
+            for payload in again:
+                pub.put(payload)
+
+    def may_send(gated: bool) -> bool:
+        """Wait until the next frame may go (frames without a pose sent again meanwhile if a
+        tracker came back); False on a stop or the tracker's end."""
+        while True:
+            if gated and not (mark.wait_until(sent, args.ahead, stop) and tracker_ready()):
+                return False
+            if not mark.take_resend():
+                return True
+            send_unposed_again()
+
     # A replayed stream starts its live clock once the map exists: until the tracker's first
     # pose it goes in lockstep, as a user holds a live camera until the system is initialized.
     replayed = live and not device
     for frame in reader:
         gated = args.lockstep or (replayed and mark.highest < 0)
-        if stop or (gated and not (mark.wait_until(sent, args.ahead, stop) and tracker_ready())):
+        if stop or not may_send(gated):
             break
         if stop.event.wait(pacer.delay(frame.timestamp)):
             break
         # Held frames are not live: the tracker must not skip one of its initialization's.
         message = FrameMessage(sent, frame.timestamp, frame.rgb, camera, live=live and not gated)
-        pub.put(message.to_bytes())
-        mark.last_sent = sent
+        mark.last_sent = sent  # before the put: its pose may come back at once
+        payload = message.to_bytes()
+        pub.put(payload)
+        unposed.append((sent, payload))
         sent += 1
         bar.update(sent, tracked=mark.highest + 1)
         if sent == args.max_frames:
@@ -320,13 +356,13 @@ def run_camera(args: argparse.Namespace) -> int:
             return
         if alive and grace:
             log.info("a tracker is back")
-            mark.forget_pending()
+            mark.tracker_back()
         for timer in grace:  # a tracker is back (or another token changed): start afresh
             timer.cancel()
         grace.clear()
         if not alive:
             # A restarted tracker (it continues the running map) or a router that came back
-            # within the grace keeps the stream going; frames sent meanwhile are lost to it.
+            # within the grace keeps the stream going; the frames without a pose go again.
             log.warning("the tracker went away: waiting %g s for it to come back", args.grace)
             grace.append(threading.Timer(args.grace, give_up))
             grace[0].daemon = True
@@ -346,7 +382,7 @@ def run_camera(args: argparse.Namespace) -> int:
         presence = Presence(session, keys, "camera", on_change=on_peer)
         matching = pub.declare_matching_listener(lambda _status: changed.set())
         mark = _PoseMark(keys.poses)
-        poses = session.declare_subscriber(keys.poses, mark.callback)
+        poses = pose_subscriber(session, keys.poses, mark.callback)
         if not (device or args.no_wait):
             log.info("waiting for a tracker in session %r", cfg.session)
             waited = (pub, presence, changed, stop, args.wait_timeout, args.also_wait_for)
@@ -368,7 +404,10 @@ def run_camera(args: argparse.Namespace) -> int:
         def tracker_ready() -> bool:
             if presence.alive("tracker") and pub.matching_status.matching:
                 return True
-            return _wait_for_tracker(pub, presence, changed, stop, args.grace)
+            back = _wait_for_tracker(pub, presence, changed, stop, args.grace)
+            if back:
+                mark.tracker_back()  # before the next frame: the ones it may lack go first
+            return back
 
         sent = 0 if stop else _stream(reader, device, live, pub, args, stop, mark, tracker_ready)
         # A tracker that leaves after the last frame has simply finished.
@@ -386,7 +425,10 @@ def run_camera(args: argparse.Namespace) -> int:
             )
         else:
             pub.put(end)
-        log.info("sent %d frames, then the end of stream (%d unreadable)", sent, reader.skipped)
+        log.info(
+            "sent %d frames, then the end of stream (%d unreadable, %d poses rejected)",
+            sent, reader.skipped, mark.rejects.count,
+        )  # fmt: skip
         matching.undeclare()
         poses.undeclare()
         presence.close()

@@ -98,9 +98,23 @@ def unpack_array(
     return np.frombuffer(data, dtype=kind).reshape(dims).copy()
 
 
+RIGID_TOLERANCE = 1e-3
+"""Largest entry of `R^T R - I` a pose's rotation may have: poses solved in float32 are
+orthonormal to ~1e-6; a scaled or sheared matrix is not a camera pose, and a map fitted to
+one is poisoned."""
+
+
 def _pose(name: str, obj: Any) -> np.ndarray:
     T = unpack_array(name, obj, "float64", (4, 4))
-    if not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]):
+    R = T[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf, then refused
+        rigid = (
+            np.isfinite(T).all()
+            and np.allclose(T[3], [0, 0, 0, 1])
+            and np.abs(R.T @ R - np.eye(3)).max() <= RIGID_TOLERANCE
+            and np.linalg.det(R) > 0
+        )
+    if not rigid:
         raise MessageError(f"{name}: not a finite rigid transform")
     return T
 
@@ -474,6 +488,8 @@ class MapSnapshot(Message):
                     f"state[{k}]: dtype {state[k].dtype} not accepted (float32, or int64 for "
                     "the indices of a sparse map)"
                 )
+            if not np.isfinite(state[k]).all():  # one NaN spreads through every render
+                raise MessageError(f"state[{k}]: not finite")
         poses = {}
         for i, item in enumerate(_get(body, "poses", list)):
             if (

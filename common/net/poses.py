@@ -44,6 +44,7 @@ from dimslam.common.net.transport import (
     Rejects,
     Stop,
     open_session,
+    pose_subscriber,
 )
 
 # Named, not __name__: under `python -m` (how `dimslam run` starts it) that is "__main__".
@@ -256,7 +257,7 @@ def run_poses(args: argparse.Namespace) -> int:
     try:
         with stop.on_signals(), open_session(cfg, "poses") as session:
             # Keep references: an unreferenced subscriber is undeclared (zenoh.md trap 4).
-            subscribers = [session.declare_subscriber(keys.poses, inbox.callback)]
+            subscribers = [pose_subscriber(session, keys.poses, inbox.callback)]
             if args.keyframes or topics is not None:
                 subscribers.append(session.declare_subscriber(keys.keyframes, on_refined))
             bridge = None if topics is None else Ros2Bridge(session, topics)

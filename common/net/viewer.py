@@ -62,7 +62,7 @@ from dimslam.common.net.service import (
     positive_int,
     service_main,
 )
-from dimslam.common.net.transport import Inbox, Keys, Presence, Rejects, Stop
+from dimslam.common.net.transport import Inbox, Keys, Presence, Rejects, Stop, pose_subscriber
 
 log = logging.getLogger("dimslam.common.net.viewer")
 
@@ -189,7 +189,7 @@ class Viewer:
 
         # Keep references: an unreferenced subscriber is undeclared (zenoh.md trap 4).
         self.subscribers = [
-            session.declare_subscriber(keys.poses, self.poses_in.callback),
+            pose_subscriber(session, keys.poses, self.poses_in.callback),
             session.declare_subscriber(keys.frames, waking(self.frames_in)),
             session.declare_subscriber(keys.keyframes, waking(self.refined_in)),
             session.declare_subscriber(keys.map, waking(self.maps_in)),

@@ -227,7 +227,8 @@ def test_pose_client_prints_json_writes_the_file_and_survives_garbage(tracker, s
 
     code, stdout, err = _finish(client)
     assert code == 0, err
-    assert "rejected a message" in err and "(2 so far)" in err
+    # Both are unreadable msgpack: one kind of rejection, logged once (transport.Rejects).
+    assert err.count("rejected a message") == 1 and "(1 so far): not a msgpack" in err
     records = [json.loads(line) for line in stdout.splitlines()]
     # Two topics: each keeps its order, but they may interleave either way.
     assert [r["seq"] for r in records if not r["refined"]] == [0, 1, 2, 3, 4, 3]
@@ -339,8 +340,9 @@ def test_camera_waits_for_the_roles_it_is_told_to(scene, tracker, start):
 
 
 def test_camera_holds_its_frames_for_a_tracker_that_comes_back(scene, tracker, start):
-    """A restarted tracker (same session and endpoint) within `--grace`: the stream goes on
-    where it was, and no frame is sent while nobody is there to take it."""
+    """A restarted tracker (same session and endpoint) within `--grace`: the frames the one
+    before did not pose go to it again, then the stream goes on, and no frame is sent while
+    nobody is there to take it."""
     camera = start(
         "dimslam-camera", str(scene), *tracker.args(), "--lockstep", "--ahead", "2",
         "--rate", "0", "--grace", "60",
@@ -352,7 +354,7 @@ def test_camera_holds_its_frames_for_a_tracker_that_comes_back(scene, tracker, s
     back = TrackerSide(tracker.name, tracker.endpoint)
     try:
         nxt = back.next_frame()
-        assert first == [0, 1] and isinstance(nxt, FrameMessage) and nxt.seq in (3, 4)
+        assert first == [0, 1] and isinstance(nxt, FrameMessage) and nxt.seq == 2
         seqs = [nxt.seq]
         while True:
             back.publish_pose(seqs[-1])
@@ -364,5 +366,6 @@ def test_camera_holds_its_frames_for_a_tracker_that_comes_back(scene, tracker, s
         code, _, err = _finish(camera)
         assert code == 0, err
         assert "waiting 60 s for it to come back" in err
+        assert "sending the 2 frames without a pose again" in err
     finally:
         back.close()

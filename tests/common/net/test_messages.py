@@ -338,15 +338,21 @@ def test_array_data_must_be_bytes():
         unpack_array("x", {"dtype": "uint8", "shape": [1], "data": "a"})
 
 
-@pytest.mark.parametrize("bad", ["nan", "inf", "row"])
+@pytest.mark.parametrize("bad", ["nan", "inf", "row", "scaled", "sheared", "reflected"])
 def test_pose_must_be_a_finite_rigid_transform(bad):
     T = _T(3)
     if bad == "nan":
         T[0, 3] = np.nan
     elif bad == "inf":
         T[1, 1] = np.inf
-    else:
+    elif bad == "row":
         T[3] = [0, 0, 1, 1]
+    elif bad == "scaled":  # a map fitted to it would be poisoned (benchmarks/fuzz.py)
+        T[:3, :3] *= 1.01
+    elif bad == "sheared":
+        T[:3, :3] = T[:3, :3] @ np.array([[1, 0.01, 0], [0, 1, 0], [0, 0, 1]])
+    else:
+        T[:3, :3] = T[:3, :3] @ np.diag([1.0, 1.0, -1.0]) * np.sign(np.linalg.det(T[:3, :3]))
     with pytest.raises(MessageError, match="not a finite rigid transform"):
         PoseMessage.from_bytes(PoseMessage(0, 0.0, T).to_bytes())
     frames = (MappingFrame(0, 0.0, _rgb(0), T, True),)
@@ -396,6 +402,19 @@ def test_snapshot_tensors_must_be_float32():
     snap = MapSnapshot(1, 0, "c", {"w": np.zeros(3, np.float64)}, {})
     with pytest.raises(MessageError, match=r"state\[w\]"):
         MapSnapshot.from_bytes(snap.to_bytes())
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_snapshot_tensors_must_be_finite(value):
+    w = np.zeros(3, np.float32)
+    w[1] = value
+    with pytest.raises(MessageError, match=r"state\[w\]: not finite"):
+        MapSnapshot.from_bytes(MapSnapshot(1, 0, "c", {"w": w}, {}).to_bytes())
+
+
+def test_poses_solved_in_float32_are_rigid_enough():
+    T = _T(4).astype(np.float32).astype(np.float64)
+    assert np.array_equal(PoseMessage.from_bytes(PoseMessage(0, 0.0, T).to_bytes()).T_wc, T)
 
 
 def test_oversized_payload_is_rejected(monkeypatch):

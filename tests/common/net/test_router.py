@@ -15,6 +15,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,12 @@ from repo import REPO
 
 from dimslam.common.net import router
 from dimslam.common.net.launch import loopback_endpoints
-from dimslam.common.net.transport import SHM_POOL_BYTES, default_endpoints
+from dimslam.common.net.transport import (
+    SHM_POOL_BYTES,
+    default_endpoints,
+    pose_publisher,
+    pose_subscriber,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -202,6 +208,48 @@ def test_router_joins_two_clients_and_stops_on_sigterm(start_router):
         assert send_through(b, a, b"map 7") == b"map 7"
     assert r.stop(signal.SIGTERM) == 0, r.log
     assert "router closed" in r.log
+
+
+def test_poses_sent_while_the_router_was_down_reach_a_client_after(start_router):
+    """The pose topic is recoverable (`transport.pose_publisher`): poses the tracker published
+    while the router was down reach a client with the next one after both are back, in
+    order, none twice."""
+    port = int(loopback_endpoints(1)[0].rsplit(":", 1)[1])
+    listen = ("--listen", f"tcp/127.0.0.1:{port}")
+    r = start_router(*listen)
+    fill = {"ROUTER_HOST:7450": f"127.0.0.1:{port}"}
+    tracker = zenoh.Config.from_json5(deploy_config("client-tracker.json5", fill))
+    client = zenoh.Config.from_json5(deploy_config("client-mapper.json5", fill))
+    key = "dimslam/test/@v1/poses"
+    received: queue.Queue[bytes] = queue.Queue()
+    with zenoh.open(tracker) as a, zenoh.open(client) as b:
+        sub = pose_subscriber(b, key, lambda s: received.put(s.payload.to_bytes()))
+        pub = pose_publisher(a, key)
+        probe = a.declare_publisher(key)  # an advanced publisher has no matching status
+        matched = threading.Event()
+        listener = probe.declare_matching_listener(lambda st: st.matching and matched.set())
+        if probe.matching_status.matching:
+            matched.set()
+        assert matched.wait(MESSAGE_TIMEOUT), "the client never matched through the router"
+        pub.put(b"0")
+        assert received.get(timeout=MESSAGE_TIMEOUT) == b"0"
+        assert r.stop(signal.SIGKILL) != 0
+        for i in range(1, 6):
+            pub.put(str(i).encode())  # nobody to route them to
+        start_router(*listen)
+        # The next pose shows the gap; a subscriber that missed the end of stream would wait.
+        # Until the client is back, a pose goes nowhere: send one each second until it comes.
+        last = 5
+        while received.empty() and last < 5 + MESSAGE_TIMEOUT:
+            last += 1
+            pub.put(str(last).encode())
+            time.sleep(1.0)
+        got = [received.get(timeout=MESSAGE_TIMEOUT) for _ in range(last)]
+        assert got == [str(i).encode() for i in range(1, last + 1)]
+        assert received.empty()
+        listener.undeclare()
+        for declared in (probe, pub, sub):
+            declared.undeclare()
 
 
 @pytest.mark.parametrize(

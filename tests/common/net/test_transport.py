@@ -23,6 +23,7 @@ from hypothesis import strategies as st
 
 from dimslam.common.errors import DimslamError
 from dimslam.common.geometry.camera import Camera
+from dimslam.common.net import transport
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import SCHEMA, FrameMessage, MessageError
 from dimslam.common.net.transport import (
@@ -196,6 +197,40 @@ def test_rejects_counts_and_logs(caplog):
     rejects("frames", MessageError("worse"))
     assert rejects.count == 2
     assert "worse" in caplog.text
+
+
+def test_rejects_log_each_kind_once_per_topic_then_a_sum_now_and_then(caplog, monkeypatch):
+    clock = [1000.0]
+    monkeypatch.setattr(transport.time, "monotonic", lambda: clock[0])
+    rejects = Rejects()
+    for i in range(1000):  # one kind: the reason up to ':' with the numbers left out
+        rejects("frames", MessageError(f"frame {i}: not after frame {i + 1}"))
+        rejects("map", MessageError(f"frame {i}: not after frame {i + 1}"))
+    assert rejects.count == 2000 and len(caplog.records) == 2
+    for i in range(100):  # many kinds: only the first REJECT_KINDS get a line of their own
+        rejects("frames", MessageError(f"field 'f{chr(65 + i % 26)}{i // 26}': bad"))
+    assert len(caplog.records) == 2 + transport.REJECT_KINDS - 1
+    clock[0] += transport.REJECT_LOG_S
+    rejects("frames", MessageError("frame 1: not after frame 2"))
+    assert len(caplog.records) == 2 + transport.REJECT_KINDS
+    unlogged = 999 + (100 - (transport.REJECT_KINDS - 1)) + 1
+    assert f"rejected {unlogged} more messages on frames" in caplog.records[-1].getMessage()
+
+
+def test_inbox_queues_what_admit_returns_and_logs_drops_sparsely(caplog):
+    inbox = Inbox(2, "frames", lambda p: None if p == b"bad" else p.decode())
+
+    class Sample:  # a zenoh sample's payload, as the callback reads it
+        def __init__(self, data: bytes) -> None:
+            self.payload = zenoh.ZBytes(data)
+
+    for data in (b"bad", b"a", b"bad", b"b"):
+        inbox.callback(Sample(data))
+    assert inbox.drain() == ["a", "b"]
+    for i in range(100):
+        inbox.put(i)
+    assert inbox.dropped == 98
+    assert len([r for r in caplog.records if "queue full" in r.getMessage()]) == 7  # 1 2 4 .. 64
 
 
 # -- through zenoh ---------------------------------------------------------------------------
