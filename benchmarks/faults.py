@@ -13,6 +13,11 @@ received) the scenario's fault happens:
 - term-mapper: SIGTERM the mapper (its outputs must parse); a new one with `--resume`;
 - kill-tracker: SIGKILL the tracker; a new one, which continues the running map, while the
   lockstep camera waits for it (`dimslam-camera --grace`);
+- term-tracker: SIGTERM the tracker: the stream ends there (it sends its last batch and the
+  end of stream), its outputs must parse, and every frame it took must reach the final
+  trajectory (no new tracker: the mapper has finished the stream);
+- term-camera: SIGTERM the camera: the stream ends there (its end of stream is sent), and
+  every frame it sent must still get a pose and reach the final trajectory;
 - kill-router: SIGKILL the router; a new one on the same port;
 - link-cut: the router stopped for `--cut` seconds, then started again.
 
@@ -28,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -43,9 +49,18 @@ from dimslam.common.io.synth import write_sequence
 from dimslam.common.io.trajectory import read_tum
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import MapperCheckpoint, PoseMessage, message_type
-from dimslam.common.net.transport import Keys
+from dimslam.common.net.transport import Keys, pose_subscriber
 
-SCENARIOS = ("clean", "kill-mapper", "term-mapper", "kill-tracker", "kill-router", "link-cut")
+SCENARIOS = (
+    "clean",
+    "kill-mapper",
+    "term-mapper",
+    "kill-tracker",
+    "term-tracker",
+    "term-camera",
+    "kill-router",
+    "link-cut",
+)
 WAIT_S = 300.0
 """Longest a run may go without a pose before the scenario is declared stuck."""
 END_WAIT_S = 60.0
@@ -53,18 +68,40 @@ END_WAIT_S = 60.0
 
 
 class Harness:
-    """The processes of one scenario, and what a client of the service saw of them."""
+    """The processes of one session, and what a client of the service saw of them.
 
-    def __init__(self, name: str, scene: Path, out: Path, rate: float) -> None:
-        self.name, self.scene, self.out, self.rate = name, scene, out, rate
+    Args:
+        name: the scenario's name; the session's name is made of it and this process's id.
+        scene: the dataset the camera streams.
+        out: the session's folder: logs, outputs, the client configuration.
+        role_args: per role, the arguments every start of that role gets beyond the common
+            ones (the camera's pacing, the mapper's checkpoints, ...).
+        router_ep: the router the processes join; None: a free loopback port of its own, for
+            `start("router")` (several sessions can share one router: benchmarks/load.py).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        scene: Path,
+        out: Path,
+        role_args: dict[str, list[str]],
+        router_ep: str | None = None,
+    ) -> None:
+        self.name, self.scene, self.out, self.role_args = name, scene, out, role_args
         out.mkdir(parents=True, exist_ok=True)
-        self.router_ep = loopback_endpoints(1)[0]
+        self.router_ep = router_ep or loopback_endpoints(1)[0]
         self.config = out / "client.json5"
         self.config.write_text(
             json.dumps(
                 {
                     "mode": "client",
-                    "connect": {"endpoints": [self.router_ep], "timeout_ms": 30000},
+                    # As deploy/zenoh/client-*.json5: reconnect within ~1 s of the router.
+                    "connect": {
+                        "endpoints": [self.router_ep],
+                        "timeout_ms": 30000,
+                        "retry": {"period_init_ms": 250, "period_max_ms": 1000},
+                    },
                     "scouting": {"multicast": {"enabled": False}},
                 }
             )
@@ -91,10 +128,10 @@ class Harness:
             if role != "camera":
                 argv += ["--preset", "tiny", "--threads", "1", "--out", str(self.out / role)]
         if role == "mapper":
-            argv += ["--checkpoint", str(self.out / "ckpt"), "--checkpoint-every", "1"]
-            argv += ["--exit-at-end", "--mesh"]
+            argv += ["--exit-at-end"]
         if role == "camera":
-            argv = [str(self.scene), "--lockstep", "--rate", str(self.rate), *argv]
+            argv = [str(self.scene), *argv]
+        argv += self.role_args.get(role, [])
         log = open(self.out / f"{role}.log", "a")  # noqa: SIM115 - closed with the process
         self.procs[role] = subprocess.Popen(
             [sys.executable, "-m", modules[role], *argv, *extra],
@@ -147,6 +184,16 @@ def _fault(h: Harness, scenario: str, cut_s: float) -> dict:
         procs["tracker"].send_signal(signal.SIGKILL)
         procs["tracker"].wait(60)
         h.start("tracker")  # within the camera's --grace: the stream goes on
+    elif scenario == "term-tracker":
+        procs["tracker"].send_signal(signal.SIGTERM)
+        info["fault_exit"] = procs["tracker"].wait(60)
+        info["outputs_parse"] = found = _tracker_outputs_parse(h.out)
+        info["frames_expected"] = found["stats_frames"]
+    elif scenario == "term-camera":
+        procs["camera"].send_signal(signal.SIGTERM)
+        info["fault_exit"] = procs["camera"].wait(60)
+        sent = re.findall(r"sent (\d+) frames, then the end", (h.out / "camera.log").read_text())
+        info["frames_expected"] = int(sent[-1]) if sent else None
     elif scenario in ("kill-router", "link-cut"):
         if scenario == "link-cut":
             procs["router"].send_signal(signal.SIGTERM)
@@ -172,8 +219,26 @@ def _outputs_parse(out: Path) -> dict:
     return found
 
 
+def _tracker_outputs_parse(out: Path) -> dict:
+    """What a SIGTERMed tracker left: every pose it published, as a TUM file, and its stats."""
+    traj = out / "tracker" / "trajectory_online.txt"
+    stats = out / "tracker" / "tracker_stats.json"
+    return {
+        "trajectory_frames": len(read_tum(traj)) if traj.is_file() else None,
+        "stats_frames": json.loads(stats.read_text())["frames"] if stats.is_file() else None,
+    }
+
+
 def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace) -> dict:
-    h = Harness(scenario, scene, out / scenario, args.rate)
+    folder = out / scenario
+    role_args = {
+        "mapper": ["--checkpoint", str(folder / "ckpt"), "--checkpoint-every", "1", "--mesh"],
+        "camera": ["--lockstep", "--rate", str(args.rate)],
+        # As `dimslam run` starts it (common/net/launch.py): bounded staleness, so a run's
+        # accuracy does not depend on when the mapper's rounds end (nor on a mapper outage).
+        "tracker": ["--map-lag", "1"],
+    }
+    h = Harness(scenario, scene, folder, role_args)
     gt = read_tum(scene / "groundtruth.txt").timestamps
     started = time.monotonic()
     try:
@@ -181,7 +246,7 @@ def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace
         with h.session() as zs:
             keys = Keys(h.session_name)
             subs = [
-                zs.declare_subscriber(keys.poses, h._pose),
+                pose_subscriber(zs, keys.poses, h._pose),
                 zs.declare_subscriber(keys.map, lambda _s: h.maps.append(time.monotonic())),
             ]
             h.start("mapper")
@@ -207,7 +272,9 @@ def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace
     received = h.poses
     posed = {t for t, v in received.items() if any(not lost for _, lost in v)}
     lost = {t for t, v in received.items() if all(lost for _, lost in v)}
-    all_ts = {round(float(t), 6) for t in gt}
+    # Every frame of the scene, unless the stream was ended early (the camera or the tracker
+    # SIGTERMed): then those the stream held.
+    all_ts = {round(float(t), 6) for t in gt[: info.get("frames_expected") or len(gt)]}
     missing = sorted(all_ts - set(received))
     times = sorted(r for v in received.values() for r, _ in v)
     gaps = np.diff(times) if len(times) > 1 else np.zeros(1)
@@ -243,6 +310,33 @@ def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace
     return result
 
 
+def benchmark_parser(doc: str, name: str) -> argparse.ArgumentParser:
+    """The options every service benchmark here has: the built-in scene's `--frames`, the
+    `--out` folder (out/NAME) and `--json`; the docstring's first paragraph describes it."""
+    parser = argparse.ArgumentParser(
+        description=doc.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--frames", type=int, default=60, help="frames of the built-in scene")
+    parser.add_argument("--out", type=Path, default=Path("out") / name, help="outputs, logs")
+    parser.add_argument("--json", type=Path, help="write the figures as JSON")
+    return parser
+
+
+def builtin_scene(folder: Path, frames: int) -> Path:
+    """The built-in scene (160x120, seed 0) in `folder`, rendered there once."""
+    if not (folder / "rgb.txt").is_file():
+        write_sequence(folder, frames=frames, width=160, height=120, seed=0)
+    return folder
+
+
+def report(results: list, text: str, path: Path | None) -> None:
+    """Print the benchmark's table; with `path`, write its figures there as JSON."""
+    print(text)
+    if path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(results, indent=2) + "\n")
+
+
 def _median(values: list) -> float | None:
     values = [v for v in values if v is not None]
     return float(np.median(values)) if values else None
@@ -256,8 +350,9 @@ def table(results: list[dict]) -> str:
     clean = _median([r.get("ate_m") for r in by_scenario.get("clean", [])])
     rows = [
         "| scenario | runs | posed / frames | lost | missing (after recovery) | longest pose gap "
-        "| poses again | maps again | resumed | final frames | ATE (range) | ATE / clean |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| poses again | maps again | resumed | final frames | ATE (range) | ATE / clean "
+        "| outputs at SIGTERM (frames) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def s(v, fmt="{:.1f} s"):
@@ -279,16 +374,29 @@ def table(results: list[dict]) -> str:
             f"| {s(med(runs, 'poses_again_s'))} | {s(med(runs, 'maps_again_s'))} "
             f"| {resumed} of {len(runs)} | {s(med(runs, 'final_frames'), '{:.0f}')} "
             f"| {s(None if ate is None else 100 * ate, '{:.2f} cm')}{spread} "
-            f"| {s(ratio, '{:.2f}')} |"
+            f"| {s(ratio, '{:.2f}')} | {_outputs(runs)} |"
         )
     return "\n".join(rows)
 
 
+def _outputs(runs: list[dict]) -> str:
+    """What the SIGTERMed process left, per run: each output file's frames (or "missing")."""
+    cells = []
+    for r in runs:
+        found = r.get("outputs_parse")
+        if found:
+            cells.append(
+                ", ".join(
+                    f"{k.split('_')[0]} {'missing' if v is None else v}" for k, v in found.items()
+                )
+            )
+        elif r.get("frames_expected") is not None:
+            cells.append(f"exit {r.get('fault_exit')}, sent {r['frames_expected']}")
+    return "; ".join(cells) or "-"
+
+
 def main() -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--frames", type=int, default=60, help="frames of the built-in scene")
+    parser = benchmark_parser(__doc__, "faults")
     parser.add_argument("--rate", type=float, default=4.0, help="camera frames per second")
     parser.add_argument("--at", type=int, default=25, help="poses received before the fault")
     parser.add_argument("--cut", type=float, default=5.0, help="link-cut: seconds of outage")
@@ -296,26 +404,19 @@ def main() -> int:
         "--repeats", type=int, default=1, help="runs of every scenario (medians reported)"
     )
     parser.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated")
-    parser.add_argument("--out", type=Path, default=Path("out/faults"))
-    parser.add_argument("--json", type=Path, help="write the figures as JSON")
     args = parser.parse_args()
     chosen = args.scenarios.split(",")
     unknown = [s for s in chosen if s not in SCENARIOS]
     if unknown:
         parser.error(f"unknown scenarios {unknown}; known: {', '.join(SCENARIOS)}")
-    scene = args.out / "scene"
-    if not (scene / "rgb.txt").is_file():
-        write_sequence(scene, frames=args.frames, width=160, height=120, seed=0)
+    scene = builtin_scene(args.out / "scene", args.frames)
     results = []
     for repeat in range(args.repeats):
         for scenario in chosen:
             print(f"{scenario} ({repeat + 1} of {args.repeats}) ...", flush=True)
             results.append(run_scenario(scenario, scene, args.out / f"run{repeat}", args))
             print(json.dumps(results[-1]), flush=True)
-    print(table(results))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    report(results, table(results), args.json)
     return 0
 
 
