@@ -35,8 +35,10 @@ liveliness tokens (no payload) and the mapper's queryables, which read no query 
 
 Reported per process: exit code and whether it crashed (non-zero exit, a traceback, or still
 running), rejections it counted, the log lines about rejections per key, RSS at the start and
-end of fuzzing (VmRSS) and its peak; per key the messages sent per generator; and the final
-trajectory's ATE against a clean run with the same seed (`--messages 0`), unless `--no-clean`.
+end of fuzzing (VmRSS) and its peak, and the growth of its private part (RssAnon; the rest is
+mostly the zenoh shared-memory pages of the processes it receives from); per key the
+messages sent per generator; and the final trajectory's ATE against a clean run with the
+same seed (`--messages 0`), unless `--no-clean`.
 """
 
 from __future__ import annotations
@@ -357,14 +359,25 @@ class Generator:
 # -- the run ---------------------------------------------------------------------------------
 
 
-def rss_mb(pid: int) -> float | None:
-    """A process's resident set (VmRSS), MiB; None once it is gone."""
+def rss_mb(pid: int, field: str = "VmRSS") -> float | None:
+    """A process's resident set (VmRSS), or one part of it (RssAnon: its private memory;
+    RssShmem: shared memory it touched, such as zenoh's shared-memory pools of the processes
+    it receives from), MiB; None once it is gone."""
     try:
         text = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return None
-    found = re.search(r"VmRSS:\s+(\d+) kB", text)
+    found = re.search(rf"{field}:\s+(\d+) kB", text)
     return int(found.group(1)) / 1024 if found else None
+
+
+def _growth(start: float | None, end: float | None) -> float | None:
+    return None if start is None or end is None else end - start
+
+
+def private_mb(procs: dict[str, subprocess.Popen]) -> dict[str, float | None]:
+    """RssAnon of each process, MiB."""
+    return {r: rss_mb(p.pid, "RssAnon") for r, p in procs.items()}
 
 
 class Fuzzer:
@@ -489,6 +502,8 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
     fuzzer = Fuzzer(h, Keys(h.session_name), bases, messages, frames)
     seen: set[int] = set()
     rss_start: dict[str, float | None] = {}
+    anon_start: dict[str, float | None] = {}
+    anon_end: dict[str, float | None] = {}
 
     def on_pose(sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
@@ -524,6 +539,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
                 h.start(role)
             h.wait_for_poses(1)
             rss_start = {r: rss_mb(p.pid) for r, p in h.procs.items()}
+            anon_start = private_mb(h.procs)
             thread = threading.Thread(target=fuzzer.run, args=(fz,), daemon=True)
             for sub in captures:  # enough bases: decoding our own messages would slow us
                 sub.undeclare()
@@ -535,6 +551,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
             else:  # the clean run's end figures at the point where the fuzzing would end
                 h.wait_for_poses(int(DONE_FRACTION * frames))
             rss_end = {r: rss_mb(p.pid) for r, p in h.procs.items()}
+            anon_end = private_mb(h.procs)
             if not h.ended.wait(stream_s + WAIT_S):
                 raise RuntimeError(f"{name}: no end of stream after {stream_s + WAIT_S:g} s")
             for role in ("camera", "tracker", "mapper"):
@@ -564,7 +581,8 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
             "rss_start_mb": start_mb,
             "rss_end_mb": end_mb,
             "rss_peak_mb": fuzzer.peak_rss.get(role),
-            "rss_growth_mb": None if start_mb is None or end_mb is None else end_mb - start_mb,
+            "rss_growth_mb": _growth(start_mb, end_mb),
+            "private_growth_mb": _growth(anon_start.get(role), anon_end.get(role)),
         }
     result = {
         "run": name,
@@ -593,8 +611,8 @@ def table(results: list[dict]) -> str:
     """Per run and process: exit, rejections, log lines per key, RSS; then the ATE."""
     rows = [
         "| run | process | exit | crashed | rejected | rejection log lines per key "
-        "| RSS start -> end (peak) | growth |",
-        "|---|---|---|---|---|---|---|---|",
+        "| RSS start -> end (peak) | growth | of which private |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         for role, p in r["processes"].items():
@@ -607,7 +625,7 @@ def table(results: list[dict]) -> str:
                 f"| {r['run']} | {role} | {p['exit']} | {'yes' if p['crashed'] else 'no'} "
                 f"| {'-' if p['rejected'] is None else p['rejected']} | {lines or '-'} "
                 f"| {mb(p['rss_start_mb'])} -> {mb(p['rss_end_mb'])} ({mb(p['rss_peak_mb'])}) MiB "
-                f"| {mb(p['rss_growth_mb'])} MiB |"
+                f"| {mb(p['rss_growth_mb'])} MiB | {mb(p.get('private_growth_mb'))} MiB |"
             )
     rows.append("")
     clean = next((r.get("ate_m") for r in results if r["run"] == "clean"), None)
