@@ -162,6 +162,15 @@ class Harness:
         conf = zenoh.Config.from_file(str(self.config))
         return zenoh.open(conf)
 
+    def final_figures(self) -> dict:
+        """The mapper's final trajectory against the scene: `ate_m` (Sim(3) RMSE) and
+        `final_frames`; empty if it wrote none."""
+        traj = self.out / "mapper" / "trajectory.txt"
+        if not traj.is_file():
+            return {}
+        figures = evaluate_files(traj, str(self.scene))
+        return {"ate_m": figures["ate_rmse_m"], "final_frames": figures["matched"]}
+
     def stop_all(self) -> None:
         for p in self.procs.values():
             if p.poll() is None:
@@ -302,11 +311,7 @@ def run_scenario(scenario: str, scene: Path, out: Path, args: argparse.Namespace
         result.update({k: v for k, v in info.items() if not k.endswith("_at")})
     mapper_log = (h.out / "mapper.log").read_text()
     result["resumed_from_checkpoint"] = "resumed from" in mapper_log
-    traj = h.out / "mapper" / "trajectory.txt"
-    if traj.is_file():
-        figures = evaluate_files(traj, str(scene))
-        result["ate_m"] = figures["ate_rmse_m"]
-        result["final_frames"] = figures["matched"]
+    result.update(h.final_figures())
     return result
 
 

@@ -61,7 +61,6 @@ import zenoh
 from faults import WAIT_S, Harness, benchmark_parser, builtin_scene, report
 
 from dimslam.common.config import PRESETS
-from dimslam.common.eval.report import evaluate_files
 from dimslam.common.io.trajectory import read_tum
 from dimslam.common.net.messages import (
     EndOfStream,
@@ -121,13 +120,17 @@ def _decodes(key: str, payload: bytes) -> bool:
 WRONG_VALUES = (None, True, "x", 1.5, -3, 2**64 - 1, [], {}, b"\x00", [1, 2, 3], {"a": 1})
 
 
+def _children(obj: object):
+    """(key or index, value) of a map's or a list's items; none for anything else."""
+    if isinstance(obj, dict):
+        return obj.items()
+    return enumerate(obj) if isinstance(obj, list) else ()
+
+
 def _paths(obj: object, path: tuple = ()) -> list[tuple]:
     """Every field below `obj` (maps and lists walked; the array maps' own fields included)."""
     found = []
-    items = (
-        obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
-    )
-    for k, v in items:
+    for k, v in _children(obj):
         found.append((*path, k))
         found += _paths(v, (*path, k))
     return found
@@ -137,10 +140,7 @@ def _arrays(obj: object, path: tuple = ()) -> list[tuple]:
     """Paths of the array maps (`{"dtype", "shape", "data"}`) below `obj`."""
     if isinstance(obj, dict) and set(obj) == {"dtype", "shape", "data"}:
         return [path]
-    items = (
-        obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
-    )
-    return [p for k, v in items for p in _arrays(v, (*path, k))]
+    return [p for k, v in _children(obj) for p in _arrays(v, (*path, k))]
 
 
 def _get(body: object, path: tuple) -> object:
@@ -371,13 +371,13 @@ def rss_mb(pid: int, field: str = "VmRSS") -> float | None:
     return int(found.group(1)) / 1024 if found else None
 
 
+def memory_mb(procs: dict[str, subprocess.Popen], field: str = "VmRSS") -> dict:
+    """`rss_mb` of each process, by role."""
+    return {role: rss_mb(p.pid, field) for role, p in procs.items()}
+
+
 def _growth(start: float | None, end: float | None) -> float | None:
     return None if start is None or end is None else end - start
-
-
-def private_mb(procs: dict[str, subprocess.Popen]) -> dict[str, float | None]:
-    """RssAnon of each process, MiB."""
-    return {r: rss_mb(p.pid, "RssAnon") for r, p in procs.items()}
 
 
 class Fuzzer:
@@ -390,7 +390,6 @@ class Fuzzer:
         self.still_valid = {k: Counter() for k in TARGETS}
         self.decoded = {k: Counter() for k in TARGETS}
         self.peak_rss: dict[str, float] = {}
-        self.done = threading.Event()
         self.seconds = 0.0
         self.error: str | None = None
 
@@ -401,8 +400,7 @@ class Fuzzer:
         return int(total * min(1.0, (self.h.count - start + 1) / span))
 
     def _sample_rss(self) -> None:
-        for role, p in self.h.procs.items():
-            mb = rss_mb(p.pid)
+        for role, mb in memory_mb(self.h.procs).items():
             if mb is not None:
                 self.peak_rss[role] = max(self.peak_rss.get(role, 0.0), mb)
 
@@ -445,7 +443,6 @@ class Fuzzer:
         self.seconds = time.monotonic() - started
         for pub in pubs.values():
             pub.undeclare()
-        self.done.set()
 
     def _one(self, gen: Generator, key: str, kind: str) -> bytes:
         for _ in range(TRIES):
@@ -502,6 +499,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
     fuzzer = Fuzzer(h, Keys(h.session_name), bases, messages, frames)
     seen: set[int] = set()
     rss_start: dict[str, float | None] = {}
+    rss_end: dict[str, float | None] = {}
     anon_start: dict[str, float | None] = {}
     anon_end: dict[str, float | None] = {}
 
@@ -538,8 +536,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
             for role in ("mapper", "tracker", "camera"):
                 h.start(role)
             h.wait_for_poses(1)
-            rss_start = {r: rss_mb(p.pid) for r, p in h.procs.items()}
-            anon_start = private_mb(h.procs)
+            rss_start, anon_start = memory_mb(h.procs), memory_mb(h.procs, "RssAnon")
             thread = threading.Thread(target=fuzzer.run, args=(fz,), daemon=True)
             for sub in captures:  # enough bases: decoding our own messages would slow us
                 sub.undeclare()
@@ -550,8 +547,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
                     raise RuntimeError(fuzzer.error)
             else:  # the clean run's end figures at the point where the fuzzing would end
                 h.wait_for_poses(int(DONE_FRACTION * frames))
-            rss_end = {r: rss_mb(p.pid) for r, p in h.procs.items()}
-            anon_end = private_mb(h.procs)
+            rss_end, anon_end = memory_mb(h.procs), memory_mb(h.procs, "RssAnon")
             if not h.ended.wait(stream_s + WAIT_S):
                 raise RuntimeError(f"{name}: no end of stream after {stream_s + WAIT_S:g} s")
             for role in ("camera", "tracker", "mapper"):
@@ -597,11 +593,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
         "decoded": {k: dict(v) for k, v in fuzzer.decoded.items() if v},
         "processes": processes,
     }
-    traj = folder / "mapper" / "trajectory.txt"
-    if traj.is_file():
-        figures = evaluate_files(traj, str(scene))
-        result["ate_m"] = figures["ate_rmse_m"]
-        result["final_frames"] = figures["matched"]
+    result.update(h.final_figures())
     online = folder / "tracker" / "trajectory_online.txt"
     result["online_frames"] = len(read_tum(online)) if online.is_file() else 0
     return result

@@ -47,7 +47,6 @@ import zenoh
 from faults import Harness, benchmark_parser, builtin_scene, report
 
 from dimslam.common.config import PRESETS
-from dimslam.common.eval.report import evaluate_files
 from dimslam.common.io.trajectory import Trajectory, read_tum, write_tum
 from dimslam.common.net.messages import (
     EndOfStream,
@@ -262,11 +261,7 @@ def _figures(h: Harness, seen: Seen, foreign: list[str]) -> dict:
         "undecodable": seen.undecodable,
         "exits": {role: p.returncode for role, p in h.procs.items() if role != "router"},
     }
-    traj = h.out / "mapper" / "trajectory.txt"
-    if traj.is_file():
-        figures = evaluate_files(traj, str(h.scene))
-        result["ate_m"] = figures["ate_rmse_m"]
-        result["final_frames"] = figures["matched"]
+    result.update(h.final_figures())
     return result
 
 
