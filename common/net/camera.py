@@ -297,7 +297,7 @@ def _stream(
     def send_unposed_again() -> None:
         again = [payload for seq, payload in unposed if seq > mark.highest]
         if again and tracker_ready():
-            log.info("sending the %d frames without a pose again", len(again))
+            log.info("sending again %d frame(s) without a pose", len(again))
             for payload in again:
                 pub.put(payload)
 

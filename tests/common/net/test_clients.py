@@ -8,6 +8,7 @@ synchronised on liveliness, matching status or a received message, never on a sl
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -366,6 +367,7 @@ def test_camera_holds_its_frames_for_a_tracker_that_comes_back(scene, tracker, s
         code, _, err = _finish(camera)
         assert code == 0, err
         assert "waiting 60 s for it to come back" in err
-        assert "sending the 2 frames without a pose again" in err
+        # Frame 2, and frame 3 if the camera sent it before it saw the tracker leave.
+        assert re.search(r"sending again [12] frame\(s\) without a pose", err), err
     finally:
         back.close()
