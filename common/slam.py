@@ -24,7 +24,6 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.trajectory import Trajectory, write_tum
-from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState
 from dimslam.common.options import to_dict
 from dimslam.common.progress import Progress
@@ -167,7 +166,7 @@ def run_dataset(
         write_tum(out_dir / "keyframes.txt", slam.keyframe_trajectory(), header="keyframes")
         mesh_path = None
         if mesh and slam.initialized:
-            mesh_path = _write_mesh(slam, out_dir / "mesh.ply")
+            mesh_path = slam.back.write_mesh(out_dir)
         lost = len(slam.lost_frames)
         if lost:
             log.warning("%d frames lost (no pose): %s", lost, [i for i, _ in slam.lost_frames])
@@ -183,14 +182,3 @@ def run_dataset(
     finally:
         logging.getLogger().removeHandler(handler)
         handler.close()
-
-
-def _write_mesh(slam: Slam, path: Path) -> Path | None:
-    try:
-        mesh = slam.back.extract_mesh()
-    except EmptyMeshError as e:
-        log.warning("no mesh written: %s", e)
-        return None
-    write_mesh(mesh, path)
-    log.info("mesh: %d vertices, %d faces -> %s", len(mesh.vertices), len(mesh.faces), path)
-    return path

@@ -16,16 +16,18 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
 
 from dimslam.common.config import SlamConfig
+from dimslam.common.eval.mesh_views import write_mesh_views
 from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
-from dimslam.common.map.mesh import EmptyMeshError
+from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
 from dimslam.mapper.mapper import Mapper, MapRound
 
@@ -152,3 +154,17 @@ class BackEnd:
             raise EmptyMeshError("no map yet")
         poses = torch.stack([f.T_wc for f in self.frames])
         return self.mapper.extract_mesh(poses, self.cfg.render.far)
+
+    def write_mesh(self, out_dir: Path) -> Path | None:
+        """Write `out_dir/mesh.ply` and its pictures, `mesh_views.png`; the PLY's path, or
+        None (logged) when there is no surface yet."""
+        try:
+            mesh = self.extract_mesh()
+        except EmptyMeshError as e:
+            log.warning("no mesh written: %s", e)
+            return None
+        path = out_dir / "mesh.ply"
+        write_mesh(mesh, path)
+        log.info("mesh: %d vertices, %d faces -> %s", len(mesh.vertices), len(mesh.faces), path)
+        write_mesh_views(mesh, self.camera, self.trajectory().poses, out_dir / "mesh_views.png")
+        return path

@@ -471,10 +471,7 @@ class MapperService:
         if self.snapshot_bytes is not None:
             (out / "map.msgpack").write_bytes(self.snapshot_bytes)
         if mesh and self.back is not None and self.version > 0:
-            try:
-                (out / "mesh.ply").write_bytes(self.mesh_ply())
-            except EmptyMeshError as e:
-                log.warning("no mesh written: %s", e)
+            self.back.write_mesh(out)
         log.info("outputs written to %s", out)
 
     def close(self) -> None:

@@ -13,6 +13,7 @@ import pytest
 
 from dimslam.common.cli import main
 from dimslam.common.config import PRESETS
+from dimslam.common.eval.mesh_views import BACKGROUND
 from dimslam.common.io.trajectory import read_tum
 from dimslam.common.options import apply_overrides
 
@@ -95,10 +96,16 @@ def test_tiny_preset_tracks_a_synthetic_sequence(forty, tmp_path):
     leaves room for run-to-run noise of a working one (1.5 cm measured on 60 frames).
     """
     out = tmp_path / "run"
-    assert main([*one_process(forty, out), "--no-mesh"]) == 0
+    assert main(one_process(forty, out)) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["matched"] == 40 and metrics["frames_lost"] == 0
     assert metrics["ate_rmse_m"] < 0.04
+    # The map, and the pictures of it a person looks at: each of the 4 views shows some.
+    assert "accuracy_cm" in metrics  # the mesh, evaluated against the scene's
+    views = cv2.imread(str(out / "mesh_views.png"))
+    h, w = views.shape[0] // 2, views.shape[1] // 2
+    for tile in (views[:h, :w], views[:h, w:], views[h:, :w], views[h:, w:]):
+        assert (tile != BACKGROUND).any(axis=-1).mean() > 0.05
 
 
 @pytest.mark.e2e
