@@ -27,7 +27,7 @@ import zenoh
 from dimslam.common import entry
 from dimslam.common.entry import add_verbosity
 from dimslam.common.errors import DimslamError
-from dimslam.common.net.transport import Stop
+from dimslam.common.net.transport import SHARED_MEMORY, Stop
 
 log = logging.getLogger("dimslam.router")
 
@@ -99,6 +99,7 @@ def router_config(config_file: Path | None, listen: Sequence[str]) -> zenoh.Conf
         # Explicit endpoints everywhere: multicast scouting would let any zenoh process on the
         # LAN join the service unasked.
         conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(SHARED_MEMORY))
     else:
         try:
             conf = zenoh.Config.from_file(str(config_file))

@@ -63,8 +63,11 @@ BATCH_QUEUE = 64
 """Mapping batches the mapper holds; it coalesces all pending ones into each round."""
 HEARTBEAT_S = 0.5
 """Period of the pose publisher's heartbeat (the newest sequence number, for miss detection)."""
-SHM_POOL_BYTES = 256 << 20
-"""Shared-memory pool so several map snapshots can be in flight (zenoh.md)."""
+SHARED_MEMORY = False
+"""Zenoh's same-host shared memory, off: a receiver maps the sender's pool (up to its size, the
+sender's choice) as it receives, which any process of the host that joins a session could use
+to grow every receiver's memory; loopback TCP costs a few ms per MB (zenoh.md), nothing next
+to a mapping round. A `--zenoh-config` file may turn it on."""
 
 _SESSION_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
@@ -110,9 +113,7 @@ def zenoh_config(cfg: TransportConfig, role: str) -> zenoh.Config:
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5(
-            "transport/shared_memory/transport_optimization/pool_size", str(SHM_POOL_BYTES)
-        )
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(SHARED_MEMORY))
         listen, connect = default_endpoints(role)
         listen = list(cfg.listen) or listen
         connect = list(cfg.connect) or connect

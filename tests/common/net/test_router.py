@@ -25,10 +25,12 @@ from repo import REPO
 from dimslam.common.net import router
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.transport import (
-    SHM_POOL_BYTES,
+    SHARED_MEMORY,
+    TransportConfig,
     default_endpoints,
     pose_publisher,
     pose_subscriber,
+    zenoh_config,
 )
 
 pytestmark = pytest.mark.integration
@@ -160,8 +162,17 @@ def test_one_host_file_matches_the_built_in_defaults():
     _, connect = default_endpoints("camera")  # connects to both tracker and mapper
     assert json.loads(conf.get_json("connect/endpoints")) == connect
     assert json.loads(conf.get_json("listen/endpoints")) == []
-    pool = conf.get_json("transport/shared_memory/transport_optimization/pool_size")
-    assert json.loads(pool) == SHM_POOL_BYTES
+    assert json.loads(conf.get_json("transport/shared_memory/enabled")) is SHARED_MEMORY
+
+
+@pytest.mark.parametrize("path", ZENOH_FILES, ids=lambda p: p.name)
+def test_no_config_maps_the_memory_of_another_process(path):
+    """Shared memory off in every deploy file and in the built-in defaults: a receiver would
+    map the sender's pool, of the sender's size (the fuzzing measured 35-60 MiB of it)."""
+    conf = zenoh.Config.from_file(path)
+    assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
+    built_in = [zenoh_config(TransportConfig(), "tracker"), router.router_config(None, [])]
+    assert all(json.loads(c.get_json("transport/shared_memory/enabled")) is False for c in built_in)
 
 
 def test_router_config_listens_on_7450_unless_told_otherwise(tmp_path):
