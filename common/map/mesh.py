@@ -121,6 +121,7 @@ def extract_mesh(
     level: float = 0.5,
     progress: Callable[[int, int], None] | None = None,
     unknown_nan: bool = False,
+    coarse: bool = False,
 ) -> trimesh.Trimesh:
     """Mesh the `level` set of the occupancy where the cameras looked.
 
@@ -142,6 +143,10 @@ def extract_mesh(
         progress: called as `progress(points_done, points_total)` after each occupancy chunk.
         unknown_nan: the occupancy is NaN where the field knows nothing (see
             `fused_occupancy`); no face is made in a cube that touches such a point.
+        coarse: evaluate the occupancy on every other grid point first and at full resolution
+            only where a surface or the edge of the known region may pass (`_coarse_to_fine`):
+            for occupancies without features thinner than two voxels, such as
+            `fused_occupancy`'s; False evaluates every point.
 
     Returns:
         The mesh in map coordinates, float64 vertices, uint8 RGBA vertex colours.
@@ -164,18 +169,29 @@ def extract_mesh(
     start = time.perf_counter()
     origin, shape = _observed_grid(bound, voxel, T_wc, camera, max_depth)
 
-    volume = np.empty(math.prod(shape), np.float32)
-    with torch.no_grad():
-        for first in range(0, len(volume), chunk):
-            idx = torch.arange(first, min(first + chunk, len(volume)))
-            i, jk = idx // (shape[1] * shape[2]), idx % (shape[1] * shape[2])
-            ijk = torch.stack([i, jk // shape[2], jk % shape[2]], 1)
-            points = (origin + ijk * voxel).float()
-            volume[first : first + len(idx)] = _call(
-                occupancy_fn, points, (len(idx),), "occupancy", allow_nan=unknown_nan
-            )
-            if progress is not None:
-                progress(first + len(idx), len(volume))
+    done = 0
+    total = math.prod(shape)
+
+    def evaluate(ijk: np.ndarray) -> np.ndarray:
+        """The occupancy at grid points `ijk` `(N, 3)`, `chunk` at a time."""
+        nonlocal done
+        out = np.empty(len(ijk), np.float32)
+        with torch.no_grad():
+            for first in range(0, len(ijk), chunk):
+                part = torch.from_numpy(ijk[first : first + chunk])
+                points = (origin + part * voxel).float()
+                out[first : first + len(part)] = _call(
+                    occupancy_fn, points, (len(part),), "occupancy", allow_nan=unknown_nan
+                )
+                done += len(part)
+                if progress is not None:
+                    progress(min(done, total), total)
+        return out
+
+    if coarse:
+        volume = _coarse_to_fine(evaluate, shape, level).reshape(-1)
+    else:
+        volume = evaluate(np.indices(shape).reshape(3, -1).T)
     known = np.isfinite(volume)
     volume[~known] = 0.0
     lo, hi = (float(volume[known].min()), float(volume[known].max())) if known.any() else (0, 0)
@@ -269,6 +285,81 @@ def _observed_grid(
     if cells > MAX_GRID_CELLS:
         raise GridTooLarge(voxel * (cells / MAX_GRID_CELLS) ** (1 / 3) * 1.01, cells, voxel)
     return bound[0] + i0 * voxel, tuple(int(c) for c in counts)
+
+
+def _coarse_to_fine(
+    evaluate: Callable[[np.ndarray], np.ndarray], shape: tuple[int, int, int], level: float
+) -> np.ndarray:
+    """The grid's values, `evaluate`d (grid indices `(N, 3)` -> values) exactly where the mesh
+    can pass and interpolated elsewhere.
+
+    First every other point along each axis (an eighth of them). A coarse cell is *active*
+    where its corners straddle `level` or mix known and unknown (NaN) values; the active
+    cells and their neighbours are evaluated at every point, and so is the last layer along an
+    axis of even length (the coarse lattice ends one point short of it). Elsewhere the points
+    take the trilinear mean of their coarse cell's corners, which stays on the corners' side
+    of `level` (or NaN with them): marching cubes makes no face there, as with exact values. A
+    surface that enters and leaves a coarse cell between its corners (thinner than two
+    voxels) is missed: the synthetic room's analytic occupancy, whose sigmoid saturates within
+    a voxel, lost 2 % of its vertices at a table top. Fused depth changes over the truncation
+    band (3 voxels in `Mapper.extract_mesh`) instead: room0's ground-truth depth from 40 views
+    at 160 px, 5 cm voxels, meshed in 3.3 s instead of 14.9 s (one core), with 38 720 of the
+    38 776 vertices (the rest: islands of a voxel or two).
+    """
+    n = np.array(shape)
+    m = (n + 1) // 2  # coarse points at fine indices 0, 2, ..., 2 (m - 1) <= n - 1
+    coarse = evaluate(np.indices(m).reshape(3, -1).T * 2).reshape(m)
+    corners = np.stack(
+        [
+            coarse[a : m[0] - 1 + a, b : m[1] - 1 + b, c : m[2] - 1 + c]
+            for a in (0, 1)
+            for b in (0, 1)
+            for c in (0, 1)
+        ]
+    )
+    unknown = np.isnan(corners)
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.fmin.reduce(corners), np.fmax.reduce(corners)
+    active = (unknown.any(0) & ~unknown.all(0)) | ((lo < level) & (level < hi))
+    active = ndimage.binary_dilation(active, structure=np.ones((3, 3, 3), bool))
+    # Upsample: even fine indices are the coarse points, odd ones the mean of their two
+    # neighbours, axis by axis (the trilinear mean of the cell's corners).
+    fine = coarse
+    for axis in range(3):
+        size = list(fine.shape)
+        size[axis] = 2 * m[axis] - 1
+        out = np.empty(size, np.float32)
+        even = [slice(None)] * 3
+        odd = [slice(None)] * 3
+        even[axis], odd[axis] = slice(0, None, 2), slice(1, None, 2)
+        out[tuple(even)] = fine
+        lower = [slice(None)] * 3
+        upper = [slice(None)] * 3
+        lower[axis], upper[axis] = slice(0, -1), slice(1, None)
+        out[tuple(odd)] = 0.5 * (fine[tuple(lower)] + fine[tuple(upper)])
+        fine = out
+    volume = np.full(shape, np.nan, np.float32)
+    volume[: fine.shape[0], : fine.shape[1], : fine.shape[2]] = fine
+    # Every fine point of an active cell: the cell's points [2a, 2a + 2] along each axis.
+    exact = np.zeros(shape, bool)
+    cells = np.repeat(np.repeat(np.repeat(active, 2, 0), 2, 1), 2, 2)
+    exact[: cells.shape[0], : cells.shape[1], : cells.shape[2]] = cells
+    for axis in range(3):
+        shifted = np.zeros_like(exact)
+        src = [slice(None)] * 3
+        dst = [slice(None)] * 3
+        src[axis], dst[axis] = slice(0, -1), slice(1, None)
+        shifted[tuple(dst)] = exact[tuple(src)]
+        exact |= shifted
+    for axis in range(3):
+        if shape[axis] % 2 == 0:
+            last = [slice(None)] * 3
+            last[axis] = shape[axis] - 1
+            exact[tuple(last)] = True
+    exact[::2, ::2, ::2] = False  # the coarse points: evaluated already
+    ijk = np.argwhere(exact)
+    volume[tuple(ijk.T)] = evaluate(ijk)
+    return volume
 
 
 def _cubes_known(known: np.ndarray) -> np.ndarray:

@@ -217,11 +217,24 @@ def test_fused_occupancy_meshes_the_surface_the_depth_maps_see():
     centre = torch.tensor([[0.1, -0.05, 0.02]])  # deep behind every view's surface: unknown
     assert torch.isnan(occupancy(centre)).all()
     assert float(occupancy(torch.tensor([[0.9, 0.9, 0.9]]))) < 0.5  # free space in view
-    mesh = extract_mesh(
-        occupancy, position_colour, BOUND, VOXEL, AROUND, CAMERA, max_depth=4.0, unknown_nan=True
-    )
+    counted = {False: 0, True: 0}
+
+    def mesh_of(coarse: bool) -> trimesh.Trimesh:
+        def counting(p: torch.Tensor) -> torch.Tensor:
+            counted[coarse] += len(p)
+            return occupancy(p)
+
+        args = (position_colour, BOUND, VOXEL, AROUND, CAMERA)
+        return extract_mesh(counting, *args, max_depth=4.0, unknown_nan=True, coarse=coarse)
+
+    mesh = mesh_of(coarse=False)
     r = np.linalg.norm(mesh.vertices - CENTRE, axis=1)
     # The fused surface is the ball's, to a voxel; a few faces at the silhouettes stray further
     # (a pixel there holds the depth of the ball's edge for points beside it).
     error = np.abs(r - RADIUS)
     assert np.median(error) < VOXEL / 4 and np.quantile(error, 0.99) < VOXEL
+    # Coarse to fine: the same mesh from fewer evaluations of the occupancy.
+    fast = mesh_of(coarse=True)
+    assert len(fast.faces) == len(mesh.faces)
+    np.testing.assert_allclose(np.sort(fast.vertices, 0), np.sort(mesh.vertices, 0), atol=1e-6)
+    assert counted[True] < 0.6 * counted[False], counted
