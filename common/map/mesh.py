@@ -302,9 +302,9 @@ def _coarse_to_fine(
     surface that enters and leaves a coarse cell between its corners (thinner than two
     voxels) is missed: the synthetic room's analytic occupancy, whose sigmoid saturates within
     a voxel, lost 2 % of its vertices at a table top. Fused depth changes over the truncation
-    band (3 voxels in `Mapper.extract_mesh`) instead: room0's ground-truth depth from 40 views
-    at 160 px, 5 cm voxels, meshed in 3.3 s instead of 14.9 s (one core), with 38 720 of the
-    38 776 vertices (the rest: islands of a voxel or two).
+    band (3 voxels in `Mapper.extract_mesh`) instead: on the final map of a cpu-preset room0
+    run it made the same 23 184 faces as every point evaluated, in 25 s instead of 37 s for
+    the whole extraction (docs/benchmarks.md); islands of a voxel or two can be lost.
     """
     n = np.array(shape)
     m = (n + 1) // 2  # coarse points at fine indices 0, 2, ..., 2 (m - 1) <= n - 1
