@@ -56,13 +56,8 @@ def render_mesh(
     Returns:
         `(height, width, 3)` uint8 RGB.
     """
-    R, t = T_wc[:3, :3], T_wc[:3, 3]
-    p = (np.asarray(mesh.vertices, dtype=np.float64) - t) @ R  # world to camera: R^T (v - t)
-    faces = np.asarray(mesh.faces)
-    corners = p[faces]  # (F, 3, 3)
+    corners, faces = _front_faces(mesh, T_wc)
     z = corners[..., 2]
-    front = (z > NEAR).all(axis=1)
-    corners, z, faces = corners[front], z[front], faces[front]
     uv = np.stack(
         [camera.fx * corners[..., 0] / z + camera.cx, camera.fy * corners[..., 1] / z + camera.cy],
         axis=-1,
@@ -98,6 +93,17 @@ def render_mesh(
         nearest = order[first]
         image.reshape(-1, 3)[pixel[nearest]] = colors[face[nearest]]
     return image
+
+
+def _front_faces(mesh: trimesh.Trimesh, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces wholly in front of the camera at `T_wc` (every corner beyond `NEAR`): their
+    corners in the camera frame `(F, 3, 3)` and their vertex indices `(F, 3)`."""
+    R, t = T_wc[:3, :3], T_wc[:3, 3]
+    p = (np.asarray(mesh.vertices, dtype=np.float64) - t) @ R  # world to camera: R^T (v - t)
+    faces = np.asarray(mesh.faces)
+    corners = p[faces]
+    front = (corners[..., 2] > NEAR).all(axis=1)
+    return corners[front], faces[front]
 
 
 def _edge(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -141,11 +147,8 @@ def _face_colors(mesh: trimesh.Trimesh, faces: np.ndarray, corners: np.ndarray) 
 def facing(mesh: trimesh.Trimesh, T_wc: np.ndarray) -> int:
     """1 if most faces in front of the camera at `T_wc` wind counter-clockwise on its screen
     (y down), else -1: the `cull` under which a camera on the observed side sees them."""
-    R, t = T_wc[:3, :3], T_wc[:3, 3]
-    p = ((np.asarray(mesh.vertices, dtype=np.float64) - t) @ R)[np.asarray(mesh.faces)]
-    z = p[..., 2]
-    front = (z > NEAR).all(axis=1)
-    uv = p[front, :, :2] / z[front, :, None]
+    corners, _ = _front_faces(mesh, T_wc)
+    uv = corners[..., :2] / corners[..., 2:]
     area = _edge(uv[:, 0], uv[:, 1], uv[:, 2])
     return 1 if (area > 0).sum() >= (area < 0).sum() else -1
 
