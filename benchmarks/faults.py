@@ -153,10 +153,10 @@ class Harness:
             self.count = len(self.poses)
             self.changed.notify_all()
 
-    def wait_for_poses(self, count: int) -> None:
+    def wait_for_poses(self, count: int, timeout: float = WAIT_S) -> None:
         with self.changed:
-            if not self.changed.wait_for(lambda: self.count >= count, WAIT_S):
-                raise RuntimeError(f"{self.name}: no {count} poses after {WAIT_S:g} s")
+            if not self.changed.wait_for(lambda: self.count >= count, timeout):
+                raise RuntimeError(f"{self.name}: no {count} poses after {timeout:g} s")
 
     def session(self) -> zenoh.Session:
         conf = zenoh.Config.from_file(str(self.config))

@@ -38,7 +38,9 @@ running), rejections it counted, the log lines about rejections per key, RSS at 
 end of fuzzing (VmRSS) and its peak, and the growth of its private part (RssAnon; the rest is
 mostly the zenoh shared-memory pages of the processes it receives from); per key the
 messages sent per generator; and the final trajectory's ATE against a clean run with the
-same seed (`--messages 0`), unless `--no-clean`.
+same seed (`--messages 0`), unless `--no-clean`. The clean run's RSS is taken at the same
+points (first pose, 80 % of the frames posed): a tracker's grows with the map and keyframes
+it receives, so the growth beyond the clean run's is what the hostile messages cost.
 """
 
 from __future__ import annotations
@@ -546,7 +548,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
                 if fuzzer.error:
                     raise RuntimeError(fuzzer.error)
             else:  # the clean run's end figures at the point where the fuzzing would end
-                h.wait_for_poses(int(DONE_FRACTION * frames))
+                h.wait_for_poses(int(DONE_FRACTION * frames), stream_s + WAIT_S)
             rss_end, anon_end = memory_mb(h.procs), memory_mb(h.procs, "RssAnon")
             if not h.ended.wait(stream_s + WAIT_S):
                 raise RuntimeError(f"{name}: no end of stream after {stream_s + WAIT_S:g} s")
@@ -599,13 +601,22 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
     return result
 
 
+def beyond_clean(process: dict, clean: dict | None, role: str) -> float | None:
+    """A fuzzed process's RSS growth less the clean run's over the same frames: what the
+    hostile messages cost it, apart from the map and keyframes every run accumulates."""
+    if clean is None:
+        return None
+    return _growth(clean["processes"][role]["rss_growth_mb"], process["rss_growth_mb"])
+
+
 def table(results: list[dict]) -> str:
     """Per run and process: exit, rejections, log lines per key, RSS; then the ATE."""
     rows = [
         "| run | process | exit | crashed | rejected | rejection log lines per key "
-        "| RSS start -> end (peak) | growth | of which private |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| RSS start -> end (peak) | growth | of which private | growth beyond the clean run's |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    clean_run = next((r for r in results if r["run"] == "clean"), None)
     for r in results:
         for role, p in r["processes"].items():
             lines = ", ".join(f"{k.rsplit('/', 1)[-1]} {n}" for k, n in p["reject_lines"].items())
@@ -617,7 +628,8 @@ def table(results: list[dict]) -> str:
                 f"| {r['run']} | {role} | {p['exit']} | {'yes' if p['crashed'] else 'no'} "
                 f"| {'-' if p['rejected'] is None else p['rejected']} | {lines or '-'} "
                 f"| {mb(p['rss_start_mb'])} -> {mb(p['rss_end_mb'])} ({mb(p['rss_peak_mb'])}) MiB "
-                f"| {mb(p['rss_growth_mb'])} MiB | {mb(p.get('private_growth_mb'))} MiB |"
+                f"| {mb(p['rss_growth_mb'])} MiB | {mb(p.get('private_growth_mb'))} MiB "
+                f"| {mb(beyond_clean(p, clean_run, role)) if r is not clean_run else '-'} MiB |"
             )
     rows.append("")
     clean = next((r.get("ate_m") for r in results if r["run"] == "clean"), None)
