@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import logging
 import os
-import queue
 import time
 from pathlib import Path
 
@@ -58,9 +57,11 @@ from dimslam.common.net.messages import (
 )
 from dimslam.common.net.transport import (
     BATCH_QUEUE,
+    MESH_QUERIES,
     Inbox,
     Keys,
     Presence,
+    Queries,
     Rejects,
     Stop,
     publisher,
@@ -120,7 +121,7 @@ class MapperService:
         self.ended_ns = -1  # the send stamp of the last end of stream
         self.stream_open = False  # a batch came after the last end of stream (or none)
         self.batches_in = Inbox(BATCH_QUEUE, "mapping batches", self._admit)
-        self.mesh_queries: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
+        self.mesh_queries = Queries(MESH_QUERIES, "mesh queries")
         stop.watch(self.batches_in)
         self.map_pub = publisher(session, keys.map, lossless=True)
         self.keyframe_pub = publisher(session, keys.keyframes, lossless=True, urgent=True)
@@ -130,7 +131,7 @@ class MapperService:
             session.declare_queryable(keys.query("map"), self._answer_map),
             session.declare_queryable(keys.query("trajectory"), self._answer_trajectory),
             session.declare_queryable(keys.query("keyframes"), self._answer_keyframes),
-            session.declare_queryable(keys.query("mesh"), self.mesh_queries.put),
+            session.declare_queryable(keys.query("mesh"), self.mesh_queries.callback),
         ]
         if resume is not None:  # before the token: a tracker that sees us must find the map
             self.resume(resume)
@@ -175,24 +176,12 @@ class MapperService:
             text = format_tum(self.trajectory(), header="dimslam final poses")
             query.reply(query.key_expr, text.encode())
 
-    def _answer_meshes(self) -> None:
-        while True:
-            try:
-                query = self.mesh_queries.get_nowait()
-            except queue.Empty:
-                return
-            with query:
-                try:
-                    query.reply(query.key_expr, self.mesh_ply())
-                except EmptyMeshError as e:
-                    query.reply_err(str(e).encode())
-
     # -- main loop --------------------------------------------------------------------------
 
     def run(self) -> int:
         """Map until a stop signal (or the end of the stream with `exit_at_end`)."""
         while not self.stop:
-            self._answer_meshes()
+            self.mesh_queries.answer_all(self.mesh_ply)
             if self.backlog:
                 self.backlog += self._parse(self.batches_in.drain())
             else:
@@ -211,7 +200,7 @@ class MapperService:
                 self.ended = False
         if self.stop:
             self._keep_pending()
-        self._answer_meshes()
+        self.mesh_queries.answer_all(self.mesh_ply)
         seconds = self.back.round_seconds if self.back is not None else []
         log.info(
             "%d rounds (median %.1f s), map version %d, %d keyframes, %d rejected messages",

@@ -12,7 +12,8 @@ them (zenoh.md trap 11).
 | map | mapper -> tracker | MapSnapshot | BLOCK | 1, newest wins |
 | keyframes | mapper -> anyone | PoseMessage (refined) | BLOCK, express | per client |
 | query/{map,keyframes} | tracker -> mapper | snapshot, MappingBatch of keyframes | | |
-| query/{mesh,trajectory} | anyone -> mapper | PLY, TUM text | | |
+| query/mesh | anyone -> mapper | PLY | | MESH_QUERIES, refused beyond |
+| query/trajectory | anyone -> mapper | TUM text | | |
 | alive/<role> | every process | liveliness token | | |
 
 Lockstep (the camera never more than K frames ahead of the published poses) bounds the frame
@@ -61,6 +62,8 @@ REJECT_LOG_S = 10.0
 """Beyond its first of each kind, a topic's rejections are summed into one line this often."""
 BATCH_QUEUE = 64
 """Mapping batches the mapper holds; it coalesces all pending ones into each round."""
+MESH_QUERIES = 16
+"""Mesh queries the mapper holds; it answers all of them with one mesh, and refuses more."""
 HEARTBEAT_S = 0.5
 """Period of the pose publisher's heartbeat (the newest sequence number, for miss detection)."""
 SHARED_MEMORY = False
@@ -273,6 +276,63 @@ class Inbox:
         """Wake a waiting `get` (shutdown)."""
         with self._cond:
             self._cond.notify_all()
+
+
+class Queries:
+    """Queries that wait for the main loop, at most `capacity` of them.
+
+    A query's answer may take long (the mapper's mesh: seconds to a minute), so it is not
+    answered on zenoh's thread (zenoh.md trap 7); a flood of queries must not queue work
+    without bound either: one beyond `capacity` is answered at once with an error, and the
+    waiting ones are answered together, with one piece of work (`answer_all`).
+    """
+
+    def __init__(self, capacity: int, name: str) -> None:
+        self.name = name
+        self._capacity = capacity
+        self._items: deque[zenoh.Query] = deque()
+        self._lock = threading.Lock()
+        self.refused = 0
+
+    def callback(self, query: zenoh.Query) -> None:
+        with self._lock:
+            full = len(self._items) >= self._capacity
+            if not full:
+                self._items.append(query)
+            else:
+                self.refused += 1
+                refused = self.refused
+        if full:
+            with query:  # dropping the query ends it for the asker (zenoh.md trap 3)
+                query.reply_err(f"busy: {self._capacity} {self.name} are waiting".encode())
+            if refused & (refused - 1) == 0:  # logged at the 1st, 2nd, 4th, 8th, ... refusal
+                log.warning(
+                    "%s: %d waiting, refused one (%d so far)", self.name, self._capacity, refused
+                )
+
+    def answer_all(self, answer: Callable[[], bytes]) -> int:
+        """Replies to every waiting query with `answer()`, computed once (or with its error
+        when it raises a DimslamError); returns how many were answered."""
+        with self._lock:
+            waiting = list(self._items)
+            self._items.clear()
+        if not waiting:
+            return 0
+        try:
+            payload, error = answer(), None
+        except DimslamError as e:
+            payload, error = None, str(e).encode()
+        for query in waiting:
+            with query:
+                if error is None:
+                    query.reply(query.key_expr, payload)
+                else:
+                    query.reply_err(error)
+        return len(waiting)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
 
 
 class Rejects:

@@ -23,6 +23,7 @@ from hypothesis import strategies as st
 
 from dimslam.common.errors import DimslamError
 from dimslam.common.geometry.camera import Camera
+from dimslam.common.map.mesh import EmptyMeshError
 from dimslam.common.net import transport
 from dimslam.common.net.launch import loopback_endpoints
 from dimslam.common.net.messages import SCHEMA, FrameMessage, MessageError
@@ -32,6 +33,7 @@ from dimslam.common.net.transport import (
     Inbox,
     Keys,
     Presence,
+    Queries,
     Rejects,
     Stop,
     TransportConfig,
@@ -259,6 +261,69 @@ def test_frame_travels_from_publisher_to_inbox(listen_only):
     assert (got.seq, got.timestamp, got.camera, got.live, got.stamp_ns) == (7, 0.25, cam, False, 11)
     np.testing.assert_array_equal(got.rgb, rgb)
     assert inbox.dropped == 0
+
+
+def test_queries_beyond_capacity_are_refused_and_the_waiting_ones_share_one_answer(
+    listen_only, caplog
+):
+    queries = Queries(2, "mesh queries")
+    answers: list[bytes] = []
+
+    def answer() -> bytes:
+        answers.append(b"PLY")
+        return answers[-1]
+
+    matched = threading.Event()
+    with _peers(listen_only) as (a, b, keys), ExitStack() as stack:
+        queryable = a.declare_queryable(keys.query("mesh"), queries.callback)
+        stack.callback(queryable.undeclare)
+        querier = b.declare_querier(keys.query("mesh"), timeout=WAIT)
+        stack.callback(querier.undeclare)
+        listener = querier.declare_matching_listener(lambda s: s.matching and matched.set())
+        stack.callback(listener.undeclare)
+        if querier.matching_status.matching:
+            matched.set()
+        assert matched.wait(WAIT), "the querier never matched the queryable"
+        asked = [querier.get() for _ in range(5)]  # in order over the one link
+        # The three beyond the two waiting are answered at once, before any work is done.
+        refused = [list(replies) for replies in asked[2:]]
+        assert len(queries) == 2 and answers == []
+        assert queries.answer_all(answer) == 2
+        answered = [list(replies) for replies in asked[:2]]
+        assert queries.answer_all(answer) == 0  # none left: no work either
+    assert answers == [b"PLY"]  # one piece of work for both
+    for replies in answered:
+        assert [r.ok.payload.to_bytes() for r in replies] == [b"PLY"]
+    for replies in refused:
+        assert len(replies) == 1 and replies[0].ok is None
+        assert replies[0].err.payload.to_bytes() == b"busy: 2 mesh queries are waiting"
+    assert queries.refused == 3
+    # Logged at the 1st and 2nd refusal, not the 3rd.
+    assert sum("refused one" in r.getMessage() for r in caplog.records) == 2
+
+
+def test_queries_pass_on_the_answers_error(listen_only):
+    queries = Queries(1, "mesh queries")
+    matched = threading.Event()
+
+    def no_surface() -> bytes:
+        raise EmptyMeshError("no map yet")
+
+    with _peers(listen_only) as (a, b, keys), ExitStack() as stack:
+        queryable = a.declare_queryable(keys.query("mesh"), queries.callback)
+        stack.callback(queryable.undeclare)
+        querier = b.declare_querier(keys.query("mesh"), timeout=WAIT)
+        stack.callback(querier.undeclare)
+        listener = querier.declare_matching_listener(lambda s: s.matching and matched.set())
+        stack.callback(listener.undeclare)
+        if querier.matching_status.matching:
+            matched.set()
+        assert matched.wait(WAIT)
+        replies, second = querier.get(), querier.get()
+        assert [r.err is not None for r in second] == [True]  # refused: the first is waiting
+        assert queries.answer_all(no_surface) == 1
+        got = list(replies)
+    assert [r.err.payload.to_bytes() for r in got] == [b"no map yet"]
 
 
 def test_publisher_congestion_policy_per_channel(listen_only):
