@@ -17,10 +17,10 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-import trimesh
 
 from dimslam.common.config import SlamConfig
 from dimslam.common.eval.mesh_views import write_mesh_views
@@ -30,6 +30,9 @@ from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
 from dimslam.mapper.mapper import Mapper, MapRound
+
+if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s to load
+    import trimesh
 
 log = logging.getLogger(__name__)
 

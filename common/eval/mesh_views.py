@@ -17,13 +17,16 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import trimesh
 
 from dimslam.common.errors import DimslamError
 from dimslam.common.geometry.camera import Camera
+
+if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s to load
+    import trimesh
 
 log = logging.getLogger(__name__)
 

@@ -26,17 +26,20 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-import trimesh
-from scipy import ndimage
 from skimage import measure
 
 from dimslam.common.errors import DimslamError
 from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera, frustum_mask
 from dimslam.common.geometry.shapes import check_shape
+
+if TYPE_CHECKING:  # imported where used: trimesh and scipy take 0.5 s to load, a
+    # restarted mapper or tracker serves sooner without them
+    import trimesh
 
 log = logging.getLogger(__name__)
 
@@ -234,6 +237,8 @@ def extract_mesh(
         )
     rgba = np.full((len(verts), 4), 255, np.uint8)
     rgba[:, :3] = np.round(np.clip(rgb, 0, 1) * 255)
+    import trimesh
+
     mesh = trimesh.Trimesh(verts, faces, vertex_colors=rgba, process=False)
     log.info(
         "mesh: %d vertices, %d faces from a %dx%dx%d grid at voxel %g in %.1f s",
@@ -321,6 +326,8 @@ def _coarse_to_fine(
     with np.errstate(invalid="ignore"):
         lo, hi = np.fmin.reduce(corners), np.fmax.reduce(corners)
     active = (unknown.any(0) & ~unknown.all(0)) | ((lo < level) & (level < hi))
+    from scipy import ndimage
+
     active = ndimage.binary_dilation(active, structure=np.ones((3, 3, 3), bool))
     # Upsample: even fine indices are the coarse points, odd ones the mean of their two
     # neighbours, axis by axis (the trilinear mean of the cell's corners).
@@ -365,6 +372,8 @@ def _coarse_to_fine(
 def _cubes_known(known: np.ndarray) -> np.ndarray:
     """Grid points all of whose 26 neighbours are known: every cube that touches the point has
     only known corners, whichever corner of its cubes marching cubes' mask refers to."""
+    from scipy import ndimage
+
     return ndimage.binary_erosion(known, structure=np.ones((3, 3, 3), bool), border_value=0)
 
 
