@@ -28,6 +28,7 @@ from dimslam.common.net import launch
 from dimslam.common.net.service import (
     add_slam_options,
     map_lag_rounds,
+    positive_int,
     positive_rate,
     slam_config,
 )
@@ -172,6 +173,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         layout=args.layout,
         mesh=not args.no_mesh,
+        stride=args.stride,
     )
     return finish_run(summary, args.out)
 
@@ -366,6 +368,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's)")
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument(
+        "--stride",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help="use every N-th frame of the dataset: N times the motion per frame, as a faster "
+        "camera (default: 1)",
+    )
     p.add_argument("--layout", choices=sorted(LAYOUTS), help="dataset layout (default: detected)")
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
     p.add_argument(

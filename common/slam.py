@@ -126,8 +126,12 @@ def run_dataset(
     max_frames: int | None = None,
     layout: str | None = None,
     mesh: bool = True,
+    stride: int = 1,
 ) -> RunSummary:
     """Run SLAM on a dataset and write trajectory, keyframes, mesh, config, log and metrics.
+
+    `stride`: every stride-th frame of the dataset (stride times the motion per frame);
+    `max_frames` counts the frames used.
 
     Raises:
         DimslamError: bad input. Lost frames do not raise: they have no pose in the outputs
@@ -138,10 +142,14 @@ def run_dataset(
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname).1s %(name)s: %(message)s"))
     logging.getLogger().addHandler(handler)
     try:
-        options = ReaderOptions(end=max_frames, width=cfg.width or None)
+        end = None if max_frames is None else max_frames * stride
+        options = ReaderOptions(end=end, stride=stride, width=cfg.width or None)
         reader = open_dataset(source, layout=layout, options=options)
         (out_dir / "config.json").write_text(
-            json.dumps({"source": str(source), "device": str(device), **to_dict(cfg)}, indent=2)
+            json.dumps(
+                {"source": str(source), "stride": stride, "device": str(device), **to_dict(cfg)},
+                indent=2,
+            )
             + "\n"
         )
         camera = reader.camera

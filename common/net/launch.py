@@ -73,6 +73,7 @@ def run_service(
     mesh: bool = True,
     realtime: float | None = None,
     viewer: list[str] | None = None,
+    stride: int = 1,
 ) -> RunSummary:
     """Run the service on a dataset and write the outputs of `run_dataset` plus the online ones.
 
@@ -126,12 +127,14 @@ def run_service(
             *(["--width", str(cfg.width)] if cfg.width else []),
             *(["--max-frames", str(max_frames)] if max_frames else []),
             *(["--layout", layout] if layout else []),
+            *(["--stride", str(stride)] if stride != 1 else []),
         ],
     }  # fmt: skip
     (out_dir / "config.json").write_text(
         json.dumps(
             {
                 "source": source,
+                "stride": stride,
                 "device": str(device),
                 "mode": "service",
                 "map_lag": map_lag if realtime is None else None,
