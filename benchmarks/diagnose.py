@@ -51,7 +51,9 @@ from dimslam.common.slam import Slam
 
 def load(args):
     cfg = apply_overrides(PRESETS[args.preset], dict(o.split("=", 1) for o in args.set))
-    reader = open_dataset(args.seq, options=ReaderOptions(width=cfg.width or None, end=args.frames))
+    end = args.frames * args.stride
+    options = ReaderOptions(width=cfg.width or None, end=end, stride=args.stride)
+    reader = open_dataset(args.seq, options=options)
     frames = list(reader)
     return cfg, reader.camera, frames
 
@@ -341,6 +343,7 @@ def main() -> None:
     parser.add_argument("seq", help="TUM-layout sequence with depth.txt")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
     parser.add_argument("--frames", type=int, default=40, help="frames to use (default: 40)")
+    parser.add_argument("--stride", type=int, default=1, help="every N-th frame (default: 1)")
     parser.add_argument("--fit-iters", type=int, default=200, help="map fitting iterations")
     parser.add_argument("--frame", type=int, default=19, help="frame of single / landscape")
     parser.add_argument("--iters", type=int, default=40, help="iterations of single")
