@@ -35,12 +35,15 @@ liveliness tokens (no payload) and the mapper's queryables, which read no query 
 
 Reported per process: exit code and whether it crashed (non-zero exit, a traceback, or still
 running), rejections it counted, the log lines about rejections per key, RSS at the start and
-end of fuzzing (VmRSS) and its peak, and the growth of its private part (RssAnon; the rest is
-mostly the zenoh shared-memory pages of the processes it receives from); per key the
+end of fuzzing (VmRSS) and its peak, the growth of its private part (RssAnon; the rest is
+mostly the zenoh shared-memory pages of the processes it receives from), and RSS again
+`SETTLE_S` after the flood (where the stream lasts that long: `--rate` 0.1 or lower), once
+the process has trimmed its heap, which is what it keeps; per key the
 messages sent per generator; and the final trajectory's ATE against a clean run with the
 same seed (`--messages 0`), unless `--no-clean`. The clean run's RSS is taken at the same
-points (first pose, 80 % of the frames posed): a tracker's grows with the map and keyframes
-it receives, so the growth beyond the clean run's is what the hostile messages cost.
+points (first pose, 80 % of the frames posed, settled): a tracker's grows with the map and
+keyframes it receives, so its settled RSS beyond the clean run's is what the hostile
+messages cost it.
 """
 
 from __future__ import annotations
@@ -74,6 +77,7 @@ from dimslam.common.net.messages import (
     decode_or_end,
     message_type,
 )
+from dimslam.common.net.service import HEAP_TRIM_S
 from dimslam.common.net.transport import Keys
 
 TARGETS = {"frames": "tracker", "map": "tracker", "mapping": "mapper", "poses": "camera"}
@@ -91,6 +95,8 @@ MATCH_WAIT_S = 30.0
 """How long the fuzzer waits for its publishers to see a subscriber (a routed declaration)."""
 DONE_FRACTION = 0.8
 """Every message is sent by the time this fraction of the frames has a pose."""
+SETTLE_S = 2 * HEAP_TRIM_S + 5
+"""How long after the flood RSS is taken again: what the process keeps, not what it holds."""
 _REJECT_LINE = re.compile(r"rejected (?:a message|\d+ more messages?) on (\S+?)[ :(]")
 
 
@@ -502,6 +508,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
     seen: set[int] = set()
     rss_start: dict[str, float | None] = {}
     rss_end: dict[str, float | None] = {}
+    rss_settled: dict[str, float | None] = {}
     anon_start: dict[str, float | None] = {}
     anon_end: dict[str, float | None] = {}
 
@@ -550,6 +557,12 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
             else:  # the clean run's end figures at the point where the fuzzing would end
                 h.wait_for_poses(int(DONE_FRACTION * frames), stream_s + WAIT_S)
             rss_end, anon_end = memory_mb(h.procs), memory_mb(h.procs, "RssAnon")
+            # What stays: the heaps are trimmed every HEAP_TRIM_S (service.trim_heap), and
+            # the messages of the flood's last seconds are still in them at its end. Only
+            # where the stream outlasts the wait (a short run's processes would be gone).
+            if (1 - DONE_FRACTION) * stream_s > 2 * SETTLE_S:
+                time.sleep(SETTLE_S)
+                rss_settled = memory_mb(h.procs)
             if not h.ended.wait(stream_s + WAIT_S):
                 raise RuntimeError(f"{name}: no end of stream after {stream_s + WAIT_S:g} s")
             for role in ("camera", "tracker", "mapper"):
@@ -578,6 +591,8 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
             **figures,
             "rss_start_mb": start_mb,
             "rss_end_mb": end_mb,
+            "rss_settled_mb": rss_settled.get(role),
+            "settled_growth_mb": _growth(start_mb, rss_settled.get(role)),
             "rss_peak_mb": fuzzer.peak_rss.get(role),
             "rss_growth_mb": _growth(start_mb, end_mb),
             "private_growth_mb": _growth(anon_start.get(role), anon_end.get(role)),
@@ -602,19 +617,21 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
 
 
 def beyond_clean(process: dict, clean: dict | None, role: str) -> float | None:
-    """A fuzzed process's RSS growth less the clean run's over the same frames: what the
-    hostile messages cost it, apart from the map and keyframes every run accumulates."""
+    """A fuzzed process's settled RSS less the clean run's at the same point of the stream:
+    what the hostile messages left it with, apart from the map and keyframes every run
+    accumulates (growths would not do: a mapper's start figure is taken mid-initialization)."""
     if clean is None:
         return None
-    return _growth(clean["processes"][role]["rss_growth_mb"], process["rss_growth_mb"])
+    return _growth(clean["processes"][role]["rss_settled_mb"], process["rss_settled_mb"])
 
 
 def table(results: list[dict]) -> str:
     """Per run and process: exit, rejections, log lines per key, RSS; then the ATE."""
     rows = [
         "| run | process | exit | crashed | rejected | rejection log lines per key "
-        "| RSS start -> end (peak) | growth | of which private | growth beyond the clean run's |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| RSS start -> end (peak) | growth | of which private | settled (growth) "
+        "| settled beyond the clean run's |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     clean_run = next((r for r in results if r["run"] == "clean"), None)
     for r in results:
@@ -629,6 +646,7 @@ def table(results: list[dict]) -> str:
                 f"| {'-' if p['rejected'] is None else p['rejected']} | {lines or '-'} "
                 f"| {mb(p['rss_start_mb'])} -> {mb(p['rss_end_mb'])} ({mb(p['rss_peak_mb'])}) MiB "
                 f"| {mb(p['rss_growth_mb'])} MiB | {mb(p.get('private_growth_mb'))} MiB "
+                f"| {mb(p['rss_settled_mb'])} ({mb(p['settled_growth_mb'])}) MiB "
                 f"| {mb(beyond_clean(p, clean_run, role)) if r is not clean_run else '-'} MiB |"
             )
     rows.append("")
