@@ -7,7 +7,8 @@
 Runs `dimslam run DATASET --stride K --seed S --single-process --threads 1 --no-mesh` (the
 `--preset`, cpu by default) for every dataset, stride and seed, `--jobs` at a time, each into
 `OUT/<dataset>_st<K>_s<S>`; a run whose folder already holds metrics.json is not run again,
-so an interrupted matrix resumes and one with more strides or seeds adds only those. Every
+so an interrupted matrix resumes and one with more strides or seeds adds only those
+(`--report`: run nothing, tabulate what is there). Every
 stride-th frame of the dataset is used: the camera moves stride times as far between frames,
 as a faster camera would (issue "Fast motion").
 
@@ -48,10 +49,13 @@ def run_folder(out: Path, dataset: str, stride: int, seed: int) -> Path:
     return out / f"{Path(dataset).name}_st{stride}_s{seed}"
 
 
-def run_one(out: Path, dataset: str, stride: int, seed: int, preset: str) -> dict:
-    """One run (or the one already there); its figures, or why there are none."""
+def run_one(out: Path, dataset: str, stride: int, seed: int, preset: str, report: bool) -> dict:
+    """One run (or the one already there); its figures, or why there are none. `report`:
+    run nothing, take what is there."""
     folder = run_folder(out, dataset, stride, seed)
     metrics = folder / "metrics.json"
+    if not metrics.is_file() and report:
+        return {"error": "not run"}
     if not metrics.is_file():
         log = folder.with_suffix(".log")
         folder.parent.mkdir(parents=True, exist_ok=True)
@@ -84,7 +88,11 @@ def table(results: dict) -> str:
         for stride, r in sorted(by_stride.items()):
             seeds = r["seeds"]
             ates = ", ".join(
-                f"{100 * s['ate_m']:.2f} cm" if "ate_m" in s else f"failed ({s['error']})"
+                f"{100 * s['ate_m']:.2f} cm"
+                if "ate_m" in s
+                else s["error"]
+                if s["error"] == "not run"
+                else f"failed ({s['error']})"
                 for s in seeds.values()
             )
             mean = r.get("mean_m")
@@ -108,6 +116,9 @@ def main() -> int:
     p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time, one thread each (2)")
     p.add_argument("--json", type=Path, help="write the figures as JSON")
+    p.add_argument(
+        "--report", action="store_true", help="run nothing: the table of the runs already there"
+    )
     args = p.parse_args()
     datasets = [d for d in args.datasets.split(",") if d]
     for d in datasets:
@@ -119,7 +130,7 @@ def main() -> int:
         key=lambda j: j[1],
     )
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        figures = list(pool.map(lambda j: run_one(args.out, *j, args.preset), jobs))
+        figures = list(pool.map(lambda j: run_one(args.out, *j, args.preset, args.report), jobs))
         done = dict(zip(jobs, figures, strict=True))
     results: dict = {}
     for (d, k, s), r in done.items():
