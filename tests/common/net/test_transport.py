@@ -263,16 +263,9 @@ def test_frame_travels_from_publisher_to_inbox(listen_only):
     assert inbox.dropped == 0
 
 
-def test_queries_beyond_capacity_are_refused_and_the_waiting_ones_share_one_answer(
-    listen_only, caplog
-):
-    queries = Queries(2, "mesh queries")
-    answers: list[bytes] = []
-
-    def answer() -> bytes:
-        answers.append(b"PLY")
-        return answers[-1]
-
+@contextmanager
+def _mesh_querier(listen_only: Path, queries: Queries) -> Iterator[zenoh.Querier]:
+    """A querier of one peer matched to `queries` declared as the other's mesh queryable."""
     matched = threading.Event()
     with _peers(listen_only) as (a, b, keys), ExitStack() as stack:
         queryable = a.declare_queryable(keys.query("mesh"), queries.callback)
@@ -284,6 +277,20 @@ def test_queries_beyond_capacity_are_refused_and_the_waiting_ones_share_one_answ
         if querier.matching_status.matching:
             matched.set()
         assert matched.wait(WAIT), "the querier never matched the queryable"
+        yield querier
+
+
+def test_queries_beyond_capacity_are_refused_and_the_waiting_ones_share_one_answer(
+    listen_only, caplog
+):
+    queries = Queries(2, "mesh queries")
+    answers: list[bytes] = []
+
+    def answer() -> bytes:
+        answers.append(b"PLY")
+        return answers[-1]
+
+    with _mesh_querier(listen_only, queries) as querier:
         asked = [querier.get() for _ in range(5)]  # in order over the one link
         # The three beyond the two waiting are answered at once, before any work is done.
         refused = [list(replies) for replies in asked[2:]]
@@ -304,21 +311,11 @@ def test_queries_beyond_capacity_are_refused_and_the_waiting_ones_share_one_answ
 
 def test_queries_pass_on_the_answers_error(listen_only):
     queries = Queries(1, "mesh queries")
-    matched = threading.Event()
 
     def no_surface() -> bytes:
         raise EmptyMeshError("no map yet")
 
-    with _peers(listen_only) as (a, b, keys), ExitStack() as stack:
-        queryable = a.declare_queryable(keys.query("mesh"), queries.callback)
-        stack.callback(queryable.undeclare)
-        querier = b.declare_querier(keys.query("mesh"), timeout=WAIT)
-        stack.callback(querier.undeclare)
-        listener = querier.declare_matching_listener(lambda s: s.matching and matched.set())
-        stack.callback(listener.undeclare)
-        if querier.matching_status.matching:
-            matched.set()
-        assert matched.wait(WAIT)
+    with _mesh_querier(listen_only, queries) as querier:
         replies, second = querier.get(), querier.get()
         assert [r.err is not None for r in second] == [True]  # refused: the first is waiting
         assert queries.answer_all(no_surface) == 1
