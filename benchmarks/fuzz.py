@@ -650,7 +650,7 @@ def table(results: list[dict]) -> str:
                 f"| {mb(beyond_clean(p, clean_run, role)) if r is not clean_run else '-'} MiB |"
             )
     rows.append("")
-    clean = next((r.get("ate_m") for r in results if r["run"] == "clean"), None)
+    clean = clean_run.get("ate_m") if clean_run else None
     for r in results:
         ate = r.get("ate_m")
         ratio = f", {ate / clean:.2f}x clean" if ate and clean else ""

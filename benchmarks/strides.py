@@ -78,6 +78,12 @@ def run_one(out: Path, dataset: str, stride: int, seed: int, preset: str, report
     }
 
 
+def _ate_cell(run: dict) -> str:
+    if "ate_m" in run:
+        return f"{100 * run['ate_m']:.2f} cm"
+    return run["error"] if run["error"] == "not run" else f"failed ({run['error']})"
+
+
 def table(results: dict) -> str:
     rows = [
         "| sequence | stride | ATE per seed | mean | / stride 1 | frames lost | frames posed |",
@@ -87,14 +93,7 @@ def table(results: dict) -> str:
         base = by_stride.get(1, {}).get("mean_m")
         for stride, r in sorted(by_stride.items()):
             seeds = r["seeds"]
-            ates = ", ".join(
-                f"{100 * s['ate_m']:.2f} cm"
-                if "ate_m" in s
-                else s["error"]
-                if s["error"] == "not run"
-                else f"failed ({s['error']})"
-                for s in seeds.values()
-            )
+            ates = ", ".join(_ate_cell(s) for s in seeds.values())
             mean = r.get("mean_m")
             shown = "-" if mean is None else f"{100 * mean:.2f} cm"
             ratio = f"{mean / base:.2f}x" if mean and base else "-"
