@@ -6,6 +6,11 @@ so a gauge pins it (design.md section 5): the map starts as a fronto-parallel pl
 `gauge_depth` in front of frame 0, and during initialization a penalty keeps frame 0's median
 rendered depth at `gauge_depth`. No ground truth enters anywhere.
 
+The initialization checks itself: when its warp residual ends above `init_max_warp` (the camera
+moved too fast for the frames to join from their motion guess, and map and poses settled on
+a wrong depth), it starts again from poses of corners tracked through the frames
+(`mapper/bootstrap.py`) and keeps whichever of the two fits the images better.
+
 A mapping round optimizes grids, decoder and the poses of its window (keyframes overlapping the
 newest frame plus the frames since the last round; frame 0 stays fixed) on random pixels.
 """
@@ -22,7 +27,7 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.map import mesh as meshing
 from dimslam.common.map.field import MapConfig, make_field
 from dimslam.common.map.render import RenderConfig, camera_rays, render_image, render_pixels
-from dimslam.common.optim.objective import LossConfig, WindowLoss
+from dimslam.common.optim.objective import LossConfig, WindowLoss, window_objective
 from dimslam.common.optim.window import (
     FrameState,
     WindowStats,
@@ -33,11 +38,17 @@ from dimslam.common.optim.window import (
     random_pixels,
 )
 from dimslam.common.options import option
+from dimslam.mapper.bootstrap import bootstrap
 
 log = logging.getLogger(__name__)
 
 INIT_START = 3
 """Frames that start the initialization together (at identity: close enough to their truth)."""
+CHECK_PIXELS = 4
+"""The initialization's check evaluates the warp on this many times the mapping pixels."""
+SCALE_ITERS = 3
+"""Map-only iterations (times `init_grow_iters`) that measure the depth of frame 0 a restart
+from tracked corners gives, before its poses are scaled to the gauge."""
 
 
 def _learning(method):
@@ -78,6 +89,11 @@ class MapperConfig:
     )
     init_iters: int = option(1500, "Joint map and pose iterations once every init frame joined.")
     init_lr_scale: float = option(10.0, "Map learning rates are multiplied by this during init.")
+    init_max_warp: float = option(
+        0.045,
+        "An initialization whose warp residual ends above this starts again from poses of "
+        "tracked corners and keeps the better fit (0: never).",
+    )
     prior_iters: int = option(200, "Iterations fitting the initial plane at the gauge depth.")
     gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
     gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
@@ -121,6 +137,7 @@ class Mapper:
         self.overlap_pixels = overlap_pixels
         self.camera = camera
         self.generator = generator
+        self.map_cfg = map_cfg
         self.field = make_field(map_cfg, device=device)
         self.margin = max(loss_cfg.patch_sizes) // 2
         self._map_optimizer: torch.optim.Optimizer | None = None
@@ -191,33 +208,73 @@ class Mapper:
             error = loss.item()
         return error
 
-    @_learning
     def initialize(self, frames: list[FrameState]) -> MapRound:
         """Joint optimization of the map and the poses of `frames` (frames[0] fixed).
 
-        The frames join one at a time: the first `INIT_START` together, then each next one at
-        the constant-velocity guess from the two before, followed by `init_grow_iters`
-        iterations; finally `init_iters` iterations over all of them. Started all at once from
-        identity, the far frames of the window lie tens of pixels from their true view, beyond
-        the reach of an 11 px patch: on room0 (cpu preset) the 13 poses came out at 3.7 cm ATE
-        over a 22 cm path, joined one at a time at 0.6 cm (docs/status.md).
+        First with the frames joining one at a time from their motion guess (`_grow`); when
+        that ends with a warp residual above `init_max_warp`, again on a new map from the
+        poses of tracked corners (`_from_corners`), and the map and poses that fit the images
+        better are kept.
         """
-        prior_error = self.fit_prior(frames[0])
-        log.info(
-            "initial plane at depth %.2f fitted (error %.3f)", self.cfg.gauge_depth, prior_error
+        first = self._grow(frames)
+        warp = self.check(frames)
+        limit = self.cfg.init_max_warp
+        if limit <= 0 or warp <= limit:
+            log.info("initialization's warp residual %.4f (at most %.4f: kept)", warp, limit)
+            return first
+        log.warning(
+            "initialization's warp residual %.4f > %.4f: starting again from tracked corners",
+            warp,
+            limit,
         )
+        kept = self.field, [f.T_wc for f in frames]
+        images = [(f.rgb * 255).round().byte().cpu().numpy() for f in frames]
+        seed = bootstrap(images, self.camera.K, self.cfg.gauge_depth)
+        if seed is None:
+            return first  # bootstrap logged why
+        log.info(
+            "corners: frames %s with %.1f degrees of parallax, %d points, %d-%d per frame",
+            seed.pair,
+            seed.parallax_deg,
+            seed.points,
+            min(seed.inliers),
+            max(seed.inliers),
+        )
+        poses = torch.from_numpy(seed.poses).to(frames[0].T_wc)
+        second = self._from_corners(frames, poses)
+        again = self.check(frames)
+        if again < warp:
+            log.info("restart kept: warp residual %.4f against %.4f", again, warp)
+            return second
+        log.warning("restart dropped: warp residual %.4f against %.4f", again, warp)
+        self.field = kept[0]
+        for f, T in zip(frames, kept[1], strict=True):
+            f.T_wc = T
+        return first
+
+    def _new_map(self) -> None:
+        self.field = make_field(self.map_cfg, device=self.field.bound.device)
+
+    def _gauge(self, depth: float):
+        """The scale gauge: frame 0's median rendered depth held at `depth`."""
 
         def gauge(result: WindowLoss, frame: torch.Tensor) -> torch.Tensor:
             depth0 = result.depth[frame == 0]
             if depth0.numel() == 0:
                 return result.total.new_zeros(())
-            return self.cfg.gauge_weight * (depth0.median() / self.cfg.gauge_depth - 1) ** 2
+            return self.cfg.gauge_weight * (depth0.median() / depth - 1) ** 2
 
-        def optimize(window: list[FrameState], iterations: int) -> WindowStats:
+        return gauge
+
+    def _optimize(
+        self, frames: list[FrameState], window: list[FrameState], iterations: int, move: bool = True
+    ) -> WindowStats:
+        """Initialization iterations on `window` (frames[0] fixed; `move`: the others too)."""
+        with self.field.learning():
             return optimize_window(
                 self.field,
                 window,
-                [f is not frames[0] for f in window],
+                [move and f is not frames[0] for f in window],
                 self.camera,
                 self._sampler(len(window)),
                 iterations,
@@ -227,18 +284,92 @@ class Mapper:
                 map_optimizer=self._adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
                 smooth=True,
-                extra_loss=gauge,
+                extra_loss=self._gauge(self.cfg.gauge_depth) if move else None,
                 max_loss=float("inf"),
             )
 
+    def _grow(self, frames: list[FrameState]) -> MapRound:
+        """The frames join one at a time: the first `INIT_START` together, then each next one
+        at the constant-velocity guess from the two before, followed by `init_grow_iters`
+        iterations; finally `init_iters` iterations over all of them. Started all at once from
+        identity, the far frames of the window lie tens of pixels from their true view, beyond
+        the reach of an 11 px patch: on room0 (cpu preset) the 13 poses came out at 3.7 cm ATE
+        over a 22 cm path, joined one at a time at 0.6 cm (docs/status.md).
+        """
+        prior_error = self.fit_prior(frames[0])
+        log.info(
+            "initial plane at depth %.2f fitted (error %.3f)", self.cfg.gauge_depth, prior_error
+        )
         for n in range(min(INIT_START, len(frames)), len(frames) + 1):
             if n > INIT_START:
                 frames[n - 1].T_wc = constant_velocity(frames[n - 2].T_wc, frames[n - 3].T_wc)
-            stats = optimize(frames[:n], self.cfg.init_grow_iters)
+            stats = self._optimize(frames, frames[:n], self.cfg.init_grow_iters)
         if self.cfg.init_iters > 0:
-            stats = optimize(frames, self.cfg.init_iters)
+            stats = self._optimize(frames, frames, self.cfg.init_iters)
         frames[0].keyframe = True
         return MapRound(stats, tuple(f.index for f in frames))
+
+    def _from_corners(self, frames: list[FrameState], poses: torch.Tensor) -> MapRound:
+        """On a new map, from `poses` (from tracked corners): the map alone for as many
+        iterations as `_grow` spends joining frames, then `init_iters` with the poses.
+
+        The corners' scale (their median depth in frame 0) is not the gauge's (the median
+        over all of frame 0's pixels; corners gather on near, textured things): a first
+        short map at these poses measures frame 0's depth, the poses are scaled so that it
+        becomes `gauge_depth`, and the map starts again at that scale, so that the scene
+        stays within the map's range whatever the corners were.
+        """
+        for f, T in zip(frames, poses, strict=True):
+            f.T_wc = T.clone()
+        grow = self.cfg.init_grow_iters * max(1, len(frames) - INIT_START + 1)
+        self._new_map()
+        self.fit_prior(frames[0])
+        self._optimize(frames, frames, SCALE_ITERS * self.cfg.init_grow_iters, move=False)
+        scale = self.cfg.gauge_depth / self._median_depth(frames[0])
+        for f in frames:
+            f.T_wc = f.T_wc.clone()
+            f.T_wc[:3, 3] *= scale
+        self._new_map()
+        self.fit_prior(frames[0])
+        self._optimize(frames, frames, grow, move=False)
+        stats = self._optimize(frames, frames, self.cfg.init_iters)
+        frames[0].keyframe = True
+        return MapRound(stats, tuple(f.index for f in frames))
+
+    def _checking(self) -> torch.Generator:
+        """Randomness of the checks, apart from the mapper's: a check that passes leaves the
+        run as it would have been without it."""
+        return torch.Generator(self.field.bound.device).manual_seed(0)
+
+    def _median_depth(self, frame: FrameState) -> float:
+        """Median depth the map renders over `CHECK_PIXELS` x `pixels` random pixels."""
+        g = self._checking()
+        _, uv = random_pixels(1, CHECK_PIXELS * self.cfg.pixels, self.camera, 0, g, g.device)
+        with torch.no_grad():
+            out = render_pixels(self.field, self.camera, uv, frame.T_wc, self.render_cfg, g)
+        return float(out.depth.median())
+
+    def check(self, frames: list[FrameState]) -> float:
+        """The warp residual of `frames` at their poses, on `CHECK_PIXELS` x `pixels`
+        random pixels (one iteration's value is too noisy to decide on)."""
+        images = torch.stack([f.rgb for f in frames])
+        poses = torch.stack([f.T_wc for f in frames])
+        g = self._checking()
+        count = CHECK_PIXELS * self.cfg.pixels
+        frame, uv = random_pixels(len(frames), count, self.camera, self.margin, g, g.device)
+        with torch.no_grad():
+            result = window_objective(
+                self.field,
+                images,
+                poses,
+                self.camera,
+                frame,
+                uv,
+                self.loss_cfg,
+                self.render_cfg,
+                g,
+            )
+        return result.warp
 
     @_learning
     def map(self, recent: list[FrameState], keyframes: list[FrameState]) -> MapRound:
