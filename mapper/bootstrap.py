@@ -170,10 +170,7 @@ def _pair(K: np.ndarray, tracks: np.ndarray) -> tuple[int, np.ndarray, np.ndarra
             best = (k, T_kw, points, parallax)
         if parallax >= PARALLAX_DEG:
             break
-    if best is None:
-        return None
-    k, T_kw, points, parallax = best
-    return k, T_kw, points, parallax
+    return best
 
 
 def bootstrap(rgbs: list[np.ndarray], K: np.ndarray, depth: float) -> Bootstrap | None:
@@ -214,7 +211,7 @@ def bootstrap(rgbs: list[np.ndarray], K: np.ndarray, depth: float) -> Bootstrap 
             return None
         inl = inl.ravel()
         wrong = np.setdiff1d(np.arange(len(seen)), inl)
-        tracks[j, seen[wrong]] = np.nan  # a track that slid: none of its later positions count
+        tracks[j, seen[wrong]] = np.nan  # slid in this frame: not triangulated from it
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
