@@ -216,10 +216,13 @@ class Mapper:
         poses of tracked corners (`_from_corners`), and the map and poses that fit the images
         better are kept.
         """
+        frames[0].keyframe = True
         first = self._grow(frames)
-        warp = self.check(frames)
         limit = self.cfg.init_max_warp
-        if limit <= 0 or warp <= limit:
+        if limit <= 0:
+            return first
+        warp = self.check(frames)
+        if warp <= limit:
             log.info("initialization's warp residual %.4f (at most %.4f: kept)", warp, limit)
             return first
         log.warning(
@@ -252,19 +255,18 @@ class Mapper:
             f.T_wc = T
         return first
 
-    def _new_map(self) -> None:
+    def _new_map(self, first: FrameState) -> None:
+        """Start the map again, as the plane in front of `first`."""
         self.field = make_field(self.map_cfg, device=self.field.bound.device)
+        self.fit_prior(first)
 
-    def _gauge(self, depth: float):
-        """The scale gauge: frame 0's median rendered depth held at `depth`."""
-
-        def gauge(result: WindowLoss, frame: torch.Tensor) -> torch.Tensor:
-            depth0 = result.depth[frame == 0]
-            if depth0.numel() == 0:
-                return result.total.new_zeros(())
-            return self.cfg.gauge_weight * (depth0.median() / depth - 1) ** 2
-
-        return gauge
+    def _gauge(self, result: WindowLoss, frame: torch.Tensor) -> torch.Tensor:
+        """The scale gauge: a penalty holding frame 0's median rendered depth at
+        `gauge_depth`."""
+        depth0 = result.depth[frame == 0]
+        if depth0.numel() == 0:
+            return result.total.new_zeros(())
+        return self.cfg.gauge_weight * (depth0.median() / self.cfg.gauge_depth - 1) ** 2
 
     def _optimize(
         self, frames: list[FrameState], window: list[FrameState], iterations: int, move: bool = True
@@ -284,7 +286,7 @@ class Mapper:
                 map_optimizer=self._adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
                 smooth=True,
-                extra_loss=self._gauge(self.cfg.gauge_depth) if move else None,
+                extra_loss=self._gauge if move else None,
                 max_loss=float("inf"),
             )
 
@@ -306,7 +308,6 @@ class Mapper:
             stats = self._optimize(frames, frames[:n], self.cfg.init_grow_iters)
         if self.cfg.init_iters > 0:
             stats = self._optimize(frames, frames, self.cfg.init_iters)
-        frames[0].keyframe = True
         return MapRound(stats, tuple(f.index for f in frames))
 
     def _from_corners(self, frames: list[FrameState], poses: torch.Tensor) -> MapRound:
@@ -322,18 +323,15 @@ class Mapper:
         for f, T in zip(frames, poses, strict=True):
             f.T_wc = T.clone()
         grow = self.cfg.init_grow_iters * max(1, len(frames) - INIT_START + 1)
-        self._new_map()
-        self.fit_prior(frames[0])
+        self._new_map(frames[0])
         self._optimize(frames, frames, SCALE_ITERS * self.cfg.init_grow_iters, move=False)
         scale = self.cfg.gauge_depth / self._median_depth(frames[0])
         for f in frames:
             f.T_wc = f.T_wc.clone()
             f.T_wc[:3, 3] *= scale
-        self._new_map()
-        self.fit_prior(frames[0])
+        self._new_map(frames[0])
         self._optimize(frames, frames, grow, move=False)
         stats = self._optimize(frames, frames, self.cfg.init_iters)
-        frames[0].keyframe = True
         return MapRound(stats, tuple(f.index for f in frames))
 
     def _checking(self) -> torch.Generator:
