@@ -9,12 +9,15 @@ run's metrics carry the spread of the segments' scales.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import asdict, dataclass
+from typing import Literal
 
 import numpy as np
 import torch
 
+from dimslam.common.errors import EvaluationError
 from dimslam.common.eval.evaluation import (
     MIN_MATCHES,
     TrajectoryMetrics,
@@ -24,6 +27,8 @@ from dimslam.common.eval.evaluation import (
 )
 from dimslam.common.geometry import pose
 from dimslam.common.io.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
 
 SEGMENT = 30
 """Matched poses per segment by default: a second of video at 30 frames/s."""
@@ -55,18 +60,26 @@ class Segment:
 
 
 def segment_drift(
-    est: Trajectory, gt: Trajectory, length: int = SEGMENT
+    est: Trajectory,
+    gt: Trajectory,
+    length: int = SEGMENT,
+    *,
+    align: Literal["sim3", "se3"] = "sim3",
+    max_dt: float = 0.02,
 ) -> tuple[TrajectoryMetrics, list[Segment]]:
     """The whole trajectory's metrics and its segments of `length` matched poses.
 
+    `align` and `max_dt` are `evaluate_trajectory`'s: the whole alignment and the association.
+
     Raises:
         ValueError: `length` below 3 (a Sim(3) needs 3 points).
-        EvaluationError: the trajectories cannot be compared (see `evaluate_trajectory`).
+        EvaluationError: the trajectories cannot be compared (see `evaluate_trajectory`), or a
+            segment's own alignment is undefined (see `umeyama`: e.g. its estimate stands still).
     """
     if length < MIN_MATCHES:
         raise ValueError(f"segments need at least {MIN_MATCHES} poses, got {length}")
-    whole = evaluate_trajectory(est, gt)
-    idx_est, idx_gt = associate(est.timestamps, gt.timestamps)  # as evaluate_trajectory
+    whole = evaluate_trajectory(est, gt, align=align, max_dt=max_dt)
+    idx_est, idx_gt = associate(est.timestamps, gt.timestamps, max_dt)  # as evaluate_trajectory
     E = whole.alignment.apply_poses(est.poses[idx_est])
     G = gt.poses[idx_gt]
     rows = []
@@ -96,3 +109,21 @@ def scale_spread(segments: list[Segment]) -> float:
         return math.nan
     scales = [s.local_scale for s in segments]
     return max(scales) / min(scales) - 1.0
+
+
+def segment_scale_spread(
+    est: Trajectory,
+    gt: Trajectory,
+    *,
+    align: Literal["sim3", "se3"] = "sim3",
+    max_dt: float = 0.02,
+) -> float | None:
+    """`scale_spread` of the `SEGMENT`-pose segments, as a run's metrics carry it: None where it
+    is undefined (fewer than two segments, or a segment whose own alignment is undefined)."""
+    try:
+        _, segments = segment_drift(est, gt, align=align, max_dt=max_dt)
+    except EvaluationError as e:
+        log.warning("segment scale spread undefined: %s", e)
+        return None
+    spread = scale_spread(segments)
+    return None if math.isnan(spread) else spread

@@ -14,7 +14,7 @@ from functools import partial
 from pathlib import Path
 
 from dimslam.common.errors import DimslamError, EvaluationError
-from dimslam.common.eval.drift import scale_spread, segment_drift
+from dimslam.common.eval.drift import segment_scale_spread
 from dimslam.common.eval.evaluation import evaluate_trajectory, write_metrics
 from dimslam.common.eval.mesh_metrics import evaluate_mesh, load_mesh
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
@@ -38,7 +38,9 @@ def load_ground_truth(gt: str, layout: str | None):
 
 
 def format_metrics(result: dict) -> str:
-    """A short human-readable table of the figures in `result` (the `--json` keys)."""
+    """A short human-readable table of the figures in `result` (the `--json` keys); a figure
+    that is missing or None (undefined) has no line. A row's format is a `str.format` template
+    or a function of the figure."""
     rows = [
         ("poses matched", "matched", "{:d}"),
         ("ATE RMSE", "ate_rmse_m", "{:.4f} m"),
@@ -47,7 +49,7 @@ def format_metrics(result: dict) -> str:
         ("ATE max", "ate_max_m", "{:.4f} m"),
         ("ATE RMSE, poses as published", "online_ate_rmse_m", "{:.4f} m"),
         ("alignment scale", "scale", "{:.4f}"),
-        ("scale spread, 30-frame segments", "segment_scale_spread", "{:.1%}"),
+        ("segment scale spread", "segment_scale_spread", lambda f: f"{100 * f:.1f} %"),
         ("RPE translation", "rpe_trans_per_m", "{:.4f} m/m"),
         ("RPE rotation", "rpe_rot_deg_per_frame", "{:.4f} deg/frame"),
         ("mesh accuracy", "accuracy_cm", "{:.2f} cm"),
@@ -58,7 +60,7 @@ def format_metrics(result: dict) -> str:
     ]
     width = max(len(name) for name, _, _ in rows)
     return "\n".join(
-        f"{name:<{width}}  {fmt.format(result[key])}"
+        f"{name:<{width}}  {fmt(result[key]) if callable(fmt) else fmt.format(result[key])}"
         for name, key, fmt in rows
         if result.get(key) is not None
     )
@@ -76,12 +78,15 @@ def evaluate_files(
     samples: int = 200_000,
     plot: Path | None = None,
 ) -> dict:
-    """Evaluate a TUM trajectory (and optionally a mesh) against ground truth; returns figures."""
+    """Evaluate a TUM trajectory (and optionally a mesh) against ground truth; returns figures:
+    `TrajectoryMetrics.to_dict`'s, `segment_scale_spread` (a fraction; None where undefined, as
+    on a path shorter than two segments) and, with a mesh, `MeshMetrics.to_dict`'s."""
 
     est = read_tum(traj_path)
     gt_traj, camera, dataset_mesh = load_ground_truth(gt, layout)
     metrics = evaluate_trajectory(est, gt_traj, align=align, max_dt=max_dt)
     result = metrics.to_dict()
+    result["segment_scale_spread"] = segment_scale_spread(est, gt_traj, align=align, max_dt=max_dt)
     if mesh is not None:
         gt_mesh = gt_mesh or dataset_mesh
         if gt_mesh is None:
@@ -152,8 +157,6 @@ def report_run(
         metrics["online_ate_rmse_m"] = evaluate_files(online, str(source), layout=layout)[
             "ate_rmse_m"
         ]
-    _, segments = segment_drift(read_tum(out_dir / "trajectory.txt"), gt)
-    metrics["segment_scale_spread"] = scale_spread(segments)
     metrics["seconds"] = seconds
     metrics["fps"] = frames / max(seconds, 1e-9)
     metrics.update(extra or {})

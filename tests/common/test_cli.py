@@ -51,8 +51,10 @@ def test_eval_of_ground_truth_against_itself(scene, tmp_path, capsys):
     assert result["ate_rmse_m"] < 1e-6
     assert result["accuracy_cm"] < 1e-6 and result["completion_cm"] < 1e-6
     assert result["completion_ratio"] == 100.0
+    assert result["segment_scale_spread"] is None  # 12 poses: too few for two segments
     assert (tmp_path / "p.png").stat().st_size > 10_000
-    assert "ATE RMSE" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "ATE RMSE" in out and "segment scale spread" not in out
 
 
 def test_eval_sees_a_drifted_estimate(scene, tmp_path):

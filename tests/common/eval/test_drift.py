@@ -1,12 +1,19 @@
-"""Segment drift: a path whose second half is scaled is found out segment by segment."""
+"""Segment drift: a path whose second half is scaled is found out segment by segment, and every
+evaluation against ground truth (`dimslam eval`, a run's metrics.json) carries the spread."""
 
+import json
 import math
+import re
 
 import numpy as np
 import pytest
 
-from dimslam.common.eval.drift import scale_spread, segment_drift
-from dimslam.common.io.trajectory import Trajectory
+from dimslam.common.eval.drift import scale_spread, segment_drift, segment_scale_spread
+from dimslam.common.eval.report import evaluate_files, format_metrics, report_run
+from dimslam.common.io.synth import write_sequence
+from dimslam.common.io.trajectory import Trajectory, read_tum, write_tum
+
+SPREAD_LINE = re.compile(r"^segment scale spread +(\S+) %$", re.MULTILINE)
 
 
 def helix(n: int) -> Trajectory:
@@ -18,14 +25,20 @@ def helix(n: int) -> Trajectory:
     return Trajectory(t, poses)
 
 
+def scaled_second_half(gt: Trajectory) -> Trajectory:
+    """`gt` whose every step from its middle pose on is 20 % longer: the second half's scale is
+    1.2 x the first's."""
+    half = len(gt) // 2
+    poses = gt.poses.copy()
+    steps = np.diff(gt.poses[:, :3, 3], axis=0)
+    steps[half - 1 :] *= 1.2
+    poses[1:, :3, 3] = gt.poses[0, :3, 3] + np.cumsum(steps, axis=0)
+    return Trajectory(gt.timestamps, poses)
+
+
 def test_a_scaled_second_half_shows_as_scale_spread():
     gt = helix(120)
-    est_poses = gt.poses.copy()
-    # From pose 60 on, every step is 20 % longer: the second half's scale is 1.2 x the first's.
-    steps = np.diff(gt.poses[:, :3, 3], axis=0)
-    steps[59:] *= 1.2
-    est_poses[1:, :3, 3] = gt.poses[0, :3, 3] + np.cumsum(steps, axis=0)
-    whole, rows = segment_drift(Trajectory(gt.timestamps, est_poses), gt, 30)
+    whole, rows = segment_drift(scaled_second_half(gt), gt, 30)
     assert [(r.first, r.last) for r in rows] == [(0, 29), (30, 59), (60, 89), (90, 119)]
     assert all(r.local_ate_m < 1e-6 for r in rows)  # each segment is exact in itself
     scales = [r.local_scale for r in rows]
@@ -41,3 +54,48 @@ def test_an_exact_copy_has_no_spread_and_short_paths_have_none():
     assert math.isnan(scale_spread(rows[:1]))
     with pytest.raises(ValueError, match="at least 3"):
         segment_drift(gt, gt, 2)
+
+
+def evaluated(tmp_path, est: Trajectory, gt: Trajectory) -> dict:
+    """`dimslam eval`'s figures for `est` against `gt`, both written as TUM files."""
+    write_tum(tmp_path / "est.txt", est)
+    write_tum(tmp_path / "gt.txt", gt)
+    return evaluate_files(tmp_path / "est.txt", str(tmp_path / "gt.txt"))
+
+
+@pytest.mark.parametrize(("scaled", "spread"), [(False, 0.0), (True, 0.2)])
+def test_the_evaluation_reports_the_spread(tmp_path, scaled, spread):
+    gt = helix(120)
+    figures = evaluated(tmp_path, scaled_second_half(gt) if scaled else gt, gt)
+    assert figures["segment_scale_spread"] == pytest.approx(spread, abs=1e-5)
+    assert SPREAD_LINE.findall(format_metrics(figures)) == [f"{100 * spread:.1f}"]
+
+
+def test_a_path_too_short_for_two_segments_has_no_spread(tmp_path):
+    gt = helix(59)  # one segment of 30 poses and a remainder
+    figures = evaluated(tmp_path, gt, gt)
+    assert figures["segment_scale_spread"] is None
+    assert figures["ate_rmse_m"] < 1e-6
+    assert not SPREAD_LINE.search(format_metrics(figures))
+
+
+def test_a_segment_without_its_own_alignment_has_no_spread():
+    gt = helix(90)
+    poses = gt.poses.copy()
+    poses[30:60, :3, 3] = poses[30, :3, 3]  # the estimate stands still through segment 2
+    assert segment_scale_spread(Trajectory(gt.timestamps, poses), gt) is None
+
+
+@pytest.mark.parametrize("frames", [60, 40])
+def test_a_runs_metrics_carry_the_spread(tmp_path, capsys, frames):
+    scene, out = tmp_path / "scene", tmp_path / "run"
+    write_sequence(scene, frames=frames, width=32, height=24, seed=3)
+    out.mkdir()
+    write_tum(out / "trajectory.txt", scaled_second_half(read_tum(scene / "groundtruth.txt")))
+    report_run(str(scene), out, None, None, seconds=1.0, frames=frames)
+    spread = json.loads((out / "metrics.json").read_text())["segment_scale_spread"]
+    printed = SPREAD_LINE.findall(capsys.readouterr().out)
+    if frames < 60:  # one segment: no spread, and no line for it
+        assert spread is None and printed == []
+    else:
+        assert spread == pytest.approx(0.2, rel=1e-3) and printed == ["20.0"]
