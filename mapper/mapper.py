@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -39,6 +40,7 @@ from dimslam.common.optim.window import (
 )
 from dimslam.common.options import option
 from dimslam.mapper.bootstrap import bootstrap
+from dimslam.mapper.stereo import SweepDepth, plane_sweep, sample_depths
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +48,14 @@ INIT_START = 3
 """Frames that start the initialization together (at identity: close enough to their truth)."""
 CHECK_PIXELS = 4
 """The initialization's check evaluates the warp on this many times the mapping pixels."""
+STEREO_BASELINE = (0.01, 0.15)
+"""Baselines (shares of the gauge depth) of the frames a keyframe's plane sweep compares: the
+widest within this range are taken (more parallax), among frames at most `STEREO_FRAMES`
+before or after it whose optical axes are within `STEREO_ANGLE` degrees of its own."""
+STEREO_FRAMES = 15
+STEREO_ANGLE = 20.0
+STEREO_NEAR = 0.2
+"""The plane sweep searches depths from this share of the gauge depth to `RenderConfig.far`."""
 SCALE_ITERS = 3
 """Map-only iterations (times `init_grow_iters`) that measure the depth of frame 0 a restart
 from tracked corners gives, before its poses are scaled to the gauge."""
@@ -97,6 +107,13 @@ class MapperConfig:
     prior_iters: int = option(200, "Iterations fitting the initial plane at the gauge depth.")
     gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
     gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
+    stereo_weight: float = option(
+        0.3,
+        "Weight of the multi-view depth target: in mapping rounds the depth rendered at a "
+        "keyframe's pixel is pulled towards the depth a plane sweep against its neighbours "
+        "found there (relative L1; 0: no sweeps).",
+    )
+    stereo_sources: int = option(4, "Neighbouring frames a keyframe's plane sweep compares.")
     post_iters: int = option(0, "Map-only post-optimization iterations over all keyframes.")
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
@@ -141,6 +158,7 @@ class Mapper:
         self.field = make_field(map_cfg, device=device)
         self.margin = max(loss_cfg.patch_sizes) // 2
         self._map_optimizer: torch.optim.Optimizer | None = None
+        self.sweeps: dict[int, SweepDepth] = {}  # keyframe index -> its multi-view depth
 
     def _adam(self, groups: list[dict]) -> torch.optim.Optimizer:
         """Adam over `groups`, following the grids when rays store new cells (sparse map)."""
@@ -260,7 +278,7 @@ class Mapper:
         self.field = make_field(self.map_cfg, device=self.field.bound.device)
         self.fit_prior(first)
 
-    def _gauge(self, result: WindowLoss, frame: torch.Tensor) -> torch.Tensor:
+    def _gauge(self, result: WindowLoss, frame: torch.Tensor, _: torch.Tensor) -> torch.Tensor:
         """The scale gauge: a penalty holding frame 0's median rendered depth at
         `gauge_depth`."""
         depth0 = result.depth[frame == 0]
@@ -386,6 +404,7 @@ class Mapper:
             self.generator,
         )
         window = chosen + recent
+        self._sweep_new(recent, keyframes)
         stats = optimize_window(
             self.field,
             window,
@@ -401,8 +420,73 @@ class Mapper:
             smooth=True,
             max_loss=float("inf"),
             surface=True,
+            extra_loss=self._stereo(window),
         )
         return MapRound(stats, tuple(f.index for f in window))
+
+    def _sweep_new(self, recent: list[FrameState], keyframes: list[FrameState]) -> None:
+        """Plane sweeps of the recent keyframes that have none yet (`stereo_weight`)."""
+        if self.cfg.stereo_weight <= 0:
+            return
+        held = {id(f): f for f in [*keyframes, *recent] if f.rgb is not None}
+        for f in recent:
+            if not f.keyframe or f.index in self.sweeps or f.rgb is None:
+                continue
+            sources = self._stereo_sources(f, list(held.values()))
+            if not sources:
+                log.debug("keyframe %d: no frame with parallax for a plane sweep", f.index)
+                continue
+            sweep = plane_sweep(
+                f.rgb,
+                f.T_wc,
+                [(s.rgb, s.T_wc) for s in sources],
+                self.camera,
+                STEREO_NEAR * self.cfg.gauge_depth,
+                self.render_cfg.far,
+            )
+            self.sweeps[f.index] = sweep
+            log.debug(
+                "keyframe %d: plane sweep against %s kept %.0f %% of its pixels",
+                f.index,
+                [s.index for s in sources],
+                100 * sweep.kept,
+            )
+
+    def _stereo_sources(self, f: FrameState, held: list[FrameState]) -> list[FrameState]:
+        """The frames `f`'s plane sweep compares: see `STEREO_BASELINE`."""
+        low, high = (b * self.cfg.gauge_depth for b in STEREO_BASELINE)
+        cos_max = math.cos(math.radians(STEREO_ANGLE))
+        found = []
+        for g in held:
+            if g is f or abs(g.index - f.index) > STEREO_FRAMES:
+                continue
+            baseline = float((g.T_wc[:3, 3] - f.T_wc[:3, 3]).norm())
+            cos = float(g.T_wc[:3, 2] @ f.T_wc[:3, 2])
+            if low <= baseline <= high and cos >= cos_max:
+                found.append((baseline, g))
+        found.sort(key=lambda x: -x[0])
+        return [g for _, g in found[: self.cfg.stereo_sources]]
+
+    def _stereo(self, window: list[FrameState]):
+        """The multi-view depth target of a window (see `MapperConfig.stereo_weight`), as an
+        `extra_loss`; None when no frame of the window has a sweep."""
+        sweeps = [self.sweeps.get(f.index) for f in window]
+        known = [s for s in sweeps if s is not None]
+        if self.cfg.stereo_weight <= 0 or not known:
+            return None
+        small = known[0].camera
+        empty = torch.full_like(known[0].depth, math.nan)
+        depths = torch.stack([empty if s is None else s.depth for s in sweeps])
+
+        def term(result: WindowLoss, frame: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+            target = sample_depths(depths, small, frame, uv, self.camera)
+            ok = torch.isfinite(target)
+            if not ok.any():
+                return result.total.new_zeros(())
+            error = (result.depth[ok] - target[ok]).abs() / target[ok]
+            return self.cfg.stereo_weight * error.mean()
+
+        return term
 
     @_learning
     def post_optimize(self, keyframes: list[FrameState], chunk: int = 20) -> WindowStats | None:

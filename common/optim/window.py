@@ -164,7 +164,7 @@ def optimize_window(
     map_optimizer: torch.optim.Optimizer | None = None,
     generator: torch.Generator | None = None,
     smooth: bool = False,
-    extra_loss: Callable[[WindowLoss, torch.Tensor], torch.Tensor] | None = None,
+    extra_loss: Callable[[WindowLoss, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     max_loss: float = 10.0,
     surface: bool = False,
 ) -> WindowStats:
@@ -182,7 +182,7 @@ def optimize_window(
         map_optimizer: the map's optimizer (see `minimize`) or None.
         generator: randomness for ray sampling.
         smooth: include the smoothness term.
-        extra_loss: `(window_loss, frame_of_pixels) -> tensor` added to the total (e.g. the
+        extra_loss: `(window_loss, frame_of_pixels, uv) -> tensor` added to the total (e.g. the
             scale gauge during initialization).
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
         surface: sample rays around the depth the map renders for the window at the start
@@ -214,7 +214,7 @@ def optimize_window(
         )
         total = result.total
         if extra_loss is not None:
-            total = total + extra_loss(result, frame)
+            total = total + extra_loss(result, frame, uv)
         return total, result
 
     return minimize(frames, movable, objective, iterations, pose_lr, map_optimizer, max_loss)
