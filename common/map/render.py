@@ -29,6 +29,11 @@ FieldFn = Callable[..., FieldOutput]
 """A map: `(N, 3)` points (and `with_color=`) -> `FieldOutput` (e.g. `Field`)."""
 
 
+MIN_OPACITY = 1e-2
+"""Normalized depth divides by at least this opacity: a ray through empty space keeps a
+bounded depth and gradient."""
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Sampling along rays; depths in map units."""
@@ -45,6 +50,12 @@ class RenderConfig:
         "instead of the stratified and importance rounds (0: the paper's sampling).",
     )
     coarse_samples: int = option(8, "Stratified samples over [near, far] with surface sampling.")
+    normalize_depth: bool = option(
+        False,
+        "Rendered depth is the mean depth of the ray's weights (their sum times depth divided "
+        "by the ray's opacity; False: not divided, the paper's, which renders a ray that does "
+        "not quite stop nearer than where it stops and so shrinks the map).",
+    )
     surface_band: float = option(
         0.15, "Surface samples cover the rendered depth +- this fraction of it."
     )
@@ -238,7 +249,10 @@ def render_rays(
     w = ray_weights(out.occupancy.view(R, S))
     depth = (w * t).sum(dim=-1)
     rgb = (w[..., None] * out.rgb.view(R, S, 3)).sum(dim=1)
-    return RenderOutput(depth=depth, rgb=rgb, opacity=w.sum(dim=-1))
+    opacity = w.sum(dim=-1)
+    if cfg.normalize_depth:
+        depth = depth / opacity.clamp_min(MIN_OPACITY)
+    return RenderOutput(depth=depth, rgb=rgb, opacity=opacity)
 
 
 def render_pixels(
