@@ -9,6 +9,8 @@ Each half is checked against ground truth before blaming the whole:
     python benchmarks/diagnose.py init SEQ         # initialization: poses and depth vs GT
     python benchmarks/diagnose.py run SEQ          # the whole system, error of every new frame
                                                    # (--depth-every N: and the map's scale)
+    python benchmarks/diagnose.py keyframes SEQ    # after the run, each keyframe's depth scale:
+                                                   # the map's and its plane sweep's
 
 SEQ is a TUM-layout sequence with `depth.txt` (exact depth: `dimslam synth` output or
 ../shared/data/room0). Settings: `--preset` plus `section.field=value` overrides. Ground truth
@@ -320,7 +322,9 @@ def cmd_run(args) -> None:
             alignment = m.alignment
             print(f"initialized on {n} frames: ATE {100 * m.ate_rmse_m:.2f} cm")
             continue
-        T = alignment.apply_poses(est.poses[-1:])[0]
+        # The newest frame as tracked: the trajectory holds only the frames mapped so far.
+        newest = slam.frames[-1].T_wc.detach().cpu().double().numpy()
+        T = alignment.apply_poses(newest[None])[0]
         drift = np.linalg.norm(T[:3, 3] - gt.poses[-1][:3, 3])
         scale = ""
         if depths is not None and (n - 1) % args.depth_every == 0:
@@ -333,12 +337,62 @@ def cmd_run(args) -> None:
         )
 
 
+def _ratio(depth: np.ndarray, gt: np.ndarray, scale: float) -> float:
+    """Median of `scale * depth / gt` where both are known (NaN where nothing is)."""
+    if depth.shape != gt.shape:
+        gt = cv2.resize(gt, depth.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    ok = np.isfinite(depth) & (gt > 0)
+    return float(np.median(scale * depth[ok] / gt[ok])) if ok.any() else float("nan")
+
+
+def cmd_keyframes(args) -> None:
+    """The whole system over `--frames`; then, per keyframe, the depth scale (over the true
+    depth, times the initialization's alignment scale: 1 is the scale the system started
+    with) of what the map renders at its final pose, and of its plane sweep (the mapper's
+    multi-view depth, found when the keyframe was new, from the poses of then)."""
+    cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    alignment = None
+    for n, f in enumerate(frames, 1):
+        try:
+            slam.add(f)
+        except TrackingLost as e:
+            print(f"frame {n - 1}: lost ({e})")
+            break
+        if slam.initialized and alignment is None:
+            gt = Trajectory(
+                np.array([x.timestamp for x in frames[:n]]),
+                np.stack([x.T_wc for x in frames[:n]]),
+            )
+            alignment = evaluate_trajectory(slam.trajectory(), gt).alignment
+    if alignment is None:
+        raise SystemExit("error: the system did not initialize")
+    mapper = slam.back.mapper
+    print(f"{len(slam.keyframes)} keyframes, {len(mapper.sweeps)} with a plane sweep")
+    print("keyframe | true median depth | map scale | sweep scale (kept)")
+    for kf in slam.keyframes:
+        d, _ = render_image(mapper.field, camera, kf.T_wc, cfg.render)
+        gt = depths[kf.index]
+        sweep = mapper.sweeps.get(kf.index)
+        swept = "-"
+        if sweep is not None:
+            ratio = _ratio(sweep.depth.numpy(), gt, alignment.s)
+            swept = f"{ratio:.3f} ({100 * sweep.kept:.0f} %)"
+        print(
+            f"{kf.index:8d} | {np.median(gt[gt > 0]):15.2f} m | "
+            f"{_ratio(d.numpy(), gt, alignment.s):9.3f} | {swept}",
+            flush=True,
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
-        "command", choices=["map-oracle", "single", "landscape", "mapper", "init", "run"]
+        "command",
+        choices=["map-oracle", "single", "landscape", "mapper", "init", "run", "keyframes"],
     )
     parser.add_argument("seq", help="TUM-layout sequence with depth.txt")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
@@ -374,6 +428,7 @@ def main() -> None:
         "mapper": cmd_mapper,
         "init": cmd_init,
         "run": cmd_run,
+        "keyframes": cmd_keyframes,
     }
     commands[args.command](args)
 
