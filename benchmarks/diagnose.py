@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -282,6 +283,25 @@ def cmd_init(args) -> None:
     scale = m.alignment.s
     print(f"ATE {100 * m.ate_rmse_m:.2f} cm over a {100 * path:.1f} cm path, scale {scale:.3f}")
     print(f"frame 0 (scaled): {depth_error(slam, camera, slam.frames[0].T_wc, depths[0], scale)}")
+    # Where no frame has looked: frame 0 turned about its vertical axis.
+    for turn in (90, 180):
+        T = slam.frames[0].T_wc @ pose.make_pose(
+            pose.exp_so3(torch.tensor([0.0, math.radians(turn), 0.0])), torch.zeros(3)
+        )
+        with torch.no_grad():
+            out = render_pixels(
+                slam.back.mapper.field,
+                camera,
+                torch.rand(2000, 2, generator=torch.Generator().manual_seed(0))
+                * torch.tensor([camera.width - 1.0, camera.height - 1.0]),
+                T,
+                cfg.render,
+            )
+        p10, p50, p90 = np.percentile(out.depth.numpy(), [10, 50, 90])
+        print(
+            f"frame 0 turned {turn} degrees (unseen): depth median {p50:.2f} (10th-90th "
+            f"percentile {p10:.2f}-{p90:.2f}) map units, opacity median {out.opacity.median():.2f}"
+        )
 
 
 def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: float) -> str:
