@@ -319,23 +319,31 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
     )
 
 
+def _feed(slam: Slam, frames):
+    """Feed `frames` to `slam` one by one; after each, once it is initialized, yield how many
+    were fed. Stops at a lost frame (printed)."""
+    for n, f in enumerate(frames, 1):
+        try:
+            slam.add(f)
+        except TrackingLost as e:
+            print(f"frame {n - 1}: lost ({e})")
+            return
+        if slam.initialized:
+            yield n
+
+
+def _ground_truth(frames) -> Trajectory:
+    return Trajectory(np.array([f.timestamp for f in frames]), np.stack([f.T_wc for f in frames]))
+
+
 def cmd_run(args) -> None:
     """The whole system; the error of each new frame after aligning on the initialization."""
     cfg, camera, frames = load(args)
     depths = gt_depths(Path(args.seq), frames, camera) if args.depth_every else None
     slam = Slam(cfg, camera, torch.device("cpu"))
     alignment = None
-    for n, f in enumerate(frames, 1):
-        try:
-            slam.add(f)
-        except TrackingLost as e:
-            print(f"frame {n - 1}: lost ({e})")
-            break
-        if not slam.initialized:
-            continue
-        gt = Trajectory(
-            np.array([x.timestamp for x in frames[:n]]), np.stack([x.T_wc for x in frames[:n]])
-        )
+    for n in _feed(slam, frames):
+        gt = _ground_truth(frames[:n])
         est = slam.trajectory()
         m = evaluate_trajectory(est, gt)
         if alignment is None:
@@ -374,18 +382,9 @@ def cmd_keyframes(args) -> None:
     depths = gt_depths(Path(args.seq), frames, camera)
     slam = Slam(cfg, camera, torch.device("cpu"))
     alignment = None
-    for n, f in enumerate(frames, 1):
-        try:
-            slam.add(f)
-        except TrackingLost as e:
-            print(f"frame {n - 1}: lost ({e})")
-            break
-        if slam.initialized and alignment is None:
-            gt = Trajectory(
-                np.array([x.timestamp for x in frames[:n]]),
-                np.stack([x.T_wc for x in frames[:n]]),
-            )
-            alignment = evaluate_trajectory(slam.trajectory(), gt).alignment
+    for n in _feed(slam, frames):
+        if alignment is None:
+            alignment = evaluate_trajectory(slam.trajectory(), _ground_truth(frames[:n])).alignment
     if alignment is None:
         raise SystemExit("error: the system did not initialize")
     mapper = slam.back.mapper
