@@ -108,10 +108,11 @@ class MapperConfig:
     gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
     gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
     stereo_weight: float = option(
-        0.3,
+        0.0,
         "Weight of the multi-view depth target: in mapping rounds the depth rendered at a "
         "keyframe's pixel is pulled towards the depth a plane sweep against its neighbours "
-        "found there (relative L1; 0: no sweeps).",
+        "found there (relative L1; 0: no sweeps). Off: 0.3 cost room3 2.3 cm over its first "
+        "150 frames, 3 seeds (docs/results.md, 'Where the scale goes').",
     )
     stereo_sources: int = option(4, "Neighbouring frames a keyframe's plane sweep compares.")
     post_iters: int = option(0, "Map-only post-optimization iterations over all keyframes.")
