@@ -288,15 +288,9 @@ def cmd_init(args) -> None:
         T = slam.frames[0].T_wc @ pose.make_pose(
             pose.exp_so3(torch.tensor([0.0, math.radians(turn), 0.0])), torch.zeros(3)
         )
+        _, uv = random_pixels(1, 2000, camera, 0, torch.Generator().manual_seed(0), "cpu")
         with torch.no_grad():
-            out = render_pixels(
-                slam.back.mapper.field,
-                camera,
-                torch.rand(2000, 2, generator=torch.Generator().manual_seed(0))
-                * torch.tensor([camera.width - 1.0, camera.height - 1.0]),
-                T,
-                cfg.render,
-            )
+            out = render_pixels(slam.back.mapper.field, camera, uv, T, cfg.render)
         p10, p50, p90 = np.percentile(out.depth.numpy(), [10, 50, 90])
         print(
             f"frame 0 turned {turn} degrees (unseen): depth median {p50:.2f} (10th-90th "

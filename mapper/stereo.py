@@ -1,13 +1,14 @@
 """Multi-view depth of a keyframe by plane sweep: where its pixels are, searched, not guessed.
 
-The map renders, where no frame has looked yet, the depth its first plane taught the decoder
-(the gauge depth in every direction: on room3 the map behind frame 0 renders 1.97-2.06 map
-units). The window objective then only refines that depth by gradient descent on warped
-patches, whose reach is a few pixels of disparity: a far wall seen with little parallax stays
-near the prior depth, the tracker follows the too-near surface with too short steps, and the
-scale shrinks (room3, cpu preset: the map's depth fell from 0.89 to 0.49 of the true one
-between frames 20 and 100 while the walls receded from 1.5 to 3 m; `benchmarks/diagnose.py
-run --depth-every`).
+The map renders, where no frame has looked yet, one depth in every direction, whatever its
+first plane taught the decoder to make of empty grids (on room3, one thread, the map behind
+frame 0 renders 1.97-2.06 map units: about the gauge depth). The window objective then only
+refines that depth by gradient descent on warped patches, whose reach is a few pixels of
+disparity: a far wall seen with little parallax may stay near the prior depth. (On room3
+the map's scale fell from 0.89 to 0.49 of the start's between frames 20 and 100,
+`benchmarks/diagnose.py run --depth-every`; the sweep's target holds the first 60 frames'
+scale but not the fall in the turn that follows, and whole runs are not better with it:
+docs/results.md, "Where the scale goes".)
 
 A plane sweep looks at every depth: for each pixel of the keyframe and each of `planes`
 inverse depths between `near` and `far`, its 5x5 patch is compared with where that depth
