@@ -22,7 +22,7 @@ from dimslam.common.errors import DimslamError
 from dimslam.common.eval.evaluation import write_metrics
 from dimslam.common.eval.report import RunSummary, evaluate_files, format_metrics
 from dimslam.common.io.datasets import LAYOUTS, add_reader_arguments, open_from_args
-from dimslam.common.io.synth import write_sequence
+from dimslam.common.io.synth import PATHS, write_sequence
 from dimslam.common.io.trajectory import write_tum
 from dimslam.common.net import launch
 from dimslam.common.net.service import (
@@ -66,6 +66,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         noise=args.noise,
         progress=lambda i, n: bar.update(i + 1),
+        path=args.path,
     )
     bar.close()
     print(
@@ -277,6 +278,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="scene and path seed (default: 0)")
     p.add_argument(
         "--noise", type=float, default=1.0, help="Gaussian noise sigma in 8-bit levels (default: 1)"
+    )
+    p.add_argument(
+        "--path",
+        choices=PATHS,
+        default="walk",
+        help="camera path: 'walk' wanders through the middle of the room panning slowly; 'loop' "
+        "walks once round the room looking outwards and 10 %% past its start, so that its end "
+        "sees again what its start saw (a loop to close); --frames sets its speed (default: walk)",
     )
     p.set_defaults(func=cmd_synth)
 

@@ -40,6 +40,8 @@ ROOM = np.array([[0.0, 0.0, 0.0], [5.0, 4.0, 2.8]])
 FPS = 30.0
 DEPTH_SCALE = 5000.0
 """Depth PNG units per metre (TUM RGB-D)."""
+PATHS = ("walk", "loop")
+"""Camera paths `write_sequence` renders."""
 
 # Furniture reaches at most this far from its wall, and camera centres stay in _CAMERA_BOX,
 # which keeps them >= 0.65 m from any furniture and >= 1.45 m from the walls.
@@ -398,20 +400,64 @@ class SynthScene:
         )
         pitch = np.radians(-12) + sway(7, rng.uniform(200, 260)) + sway(1, 45)
         roll = sway(3, rng.uniform(150, 190)) + sway(0.7, 37)
-        forward = np.stack(
-            [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], 1
+        return _orient(centre, yaw, pitch, roll)
+
+    def loop_path(self, frames: int, turns: float = 1.1) -> np.ndarray:
+        """A walk once round the room that comes back to where it started, looking outwards.
+
+        The centre goes `turns` times round an ellipse through the free middle of the room,
+        the view always facing away from the room's middle (so the heading turns with it), with
+        gentle sway; the frames after the first turn see again what the first frames saw, which
+        is what a loop closure needs. `frames` sets the speed: 300 frames walk about 1.7 cm and
+        turn about 1.3 degrees per frame.
+
+        Args:
+            frames: number of poses, >= 2.
+            turns: rounds walked, > 0.
+
+        Returns:
+            `(frames, 4, 4)` float64 `T_wc`, OpenCV camera axes.
+        """
+        _check_count("frames", frames, 2)
+        if not np.isfinite(turns) or turns <= 0:
+            raise DimslamError(f"turns must be > 0, got {turns}")
+        rng = np.random.default_rng([self.seed, 3])
+        i = np.arange(frames, dtype=np.float64)
+        phi = rng.uniform(0, 2 * np.pi) + rng.choice([-1, 1]) * 2 * np.pi * turns * i / (frames - 1)
+        mid, half = _CAMERA_BOX.mean(0), 0.45 * np.ptp(_CAMERA_BOX, axis=0)
+        centre = np.stack(
+            [
+                mid[0] + half[0] * np.cos(phi),
+                mid[1] + half[1] * np.sin(phi),
+                mid[2] + 0.05 * np.sin(2 * np.pi * i / 40),
+            ],
+            1,
         )
-        right = np.cross(forward, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right, axis=1, keepdims=True)
-        down = np.cross(forward, right)
-        c, s_ = np.cos(roll)[:, None], np.sin(roll)[:, None]
-        T = np.zeros((frames, 4, 4))
-        T[:, :3, 0] = c * right + s_ * down  # roll about the optical axis
-        T[:, :3, 1] = -s_ * right + c * down
-        T[:, :3, 2] = forward
-        T[:, :3, 3] = centre
-        T[:, 3, 3] = 1
-        return T
+
+        def sway(degrees: float, period: float) -> np.ndarray:
+            return np.radians(degrees) * np.sin(2 * np.pi * i / period + rng.uniform(0, 2 * np.pi))
+
+        yaw = phi + sway(8, rng.uniform(90, 130))
+        pitch = np.radians(-10) + sway(4, rng.uniform(70, 110))
+        roll = sway(2, rng.uniform(60, 90))
+        return _orient(centre, yaw, pitch, roll)
+
+
+def _orient(centre: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """`(n, 4, 4)` camera-to-world poses (OpenCV axes, world z up) at `centre` looking along
+    `yaw` (about z, from +x), `pitch` (up positive) and `roll` (about the optical axis)."""
+    forward = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], 1)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right, axis=1, keepdims=True)
+    down = np.cross(forward, right)
+    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
+    T = np.zeros((len(centre), 4, 4))
+    T[:, :3, 0] = c * right + s * down  # roll about the optical axis
+    T[:, :3, 1] = -s * right + c * down
+    T[:, :3, 2] = forward
+    T[:, :3, 3] = centre
+    T[:, 3, 3] = 1
+    return T
 
 
 def _place_furniture(rng: np.random.Generator) -> tuple[list[str], list[np.ndarray]]:
@@ -472,6 +518,7 @@ def write_sequence(
     seed: int = 0,
     noise: float = 1.0,
     progress: Callable[[int, int], None] | None = None,
+    path: str = "walk",
 ) -> SynthSummary:
     """Render the scene along its path and write a TUM RGB-D sequence.
 
@@ -488,6 +535,8 @@ def write_sequence(
         seed: scene and path seed.
         noise: Gaussian sensor noise sigma in 8-bit levels (0 for none), drawn from `seed`.
         progress: called as `progress(i, frames)` after frame `i` (0-based) is written.
+        path: `walk` (`SynthScene.path`) or `loop` (`SynthScene.loop_path`: round the room and
+            back to the start).
 
     Returns:
         The summary, with timing.
@@ -498,9 +547,11 @@ def write_sequence(
     out = Path(out_dir)
     start = time.perf_counter()
     _check_arguments(out, frames, width, height, noise)
+    if path not in PATHS:
+        raise DimslamError(f"path must be one of {', '.join(PATHS)}, got {path!r}")
     scene = SynthScene(seed)
     camera = default_camera(width, height)
-    poses = scene.path(frames)
+    poses = scene.path(frames) if path == "walk" else scene.loop_path(frames)
     stamps = 1.0 + np.arange(frames) / FPS
     names = [f"{ts:.6f}" for ts in stamps]
     for folder in ("rgb", "depth"):
@@ -508,7 +559,10 @@ def write_sequence(
         for old in (out / folder).glob("*.png"):
             old.unlink()
     # The index files go first: they mark the folder as ours even if rendering is interrupted.
-    header = f"{_MARKER}, seed {seed}, {width}x{height}, noise {noise:g}\n# timestamp filename\n"
+    header = (
+        f"{_MARKER}, seed {seed}, {width}x{height}, noise {noise:g}, path {path}\n"
+        "# timestamp filename\n"
+    )
     for folder in ("rgb", "depth"):
         lines = "".join(f"{n} {folder}/{n}.png\n" for n in names)
         (out / f"{folder}.txt").write_text(header + lines)

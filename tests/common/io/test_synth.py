@@ -152,6 +152,26 @@ def test_path_is_smooth_slow_and_clear_of_everything(seed):
     assert np.ptp(yaw[:300]) > np.radians(60)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_loop_path_comes_back_to_its_start_looking_the_same_way(seed):
+    scene = SynthScene(seed)
+    T = scene.loop_path(330)
+    R, c = T[:, :3, :3], T[:, :3, 3]
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+    step = np.linalg.norm(np.diff(c, axis=0), axis=1)
+    assert step.max() < 0.025 and rotation_degrees(R[:-1], R[1:]).max() < 2.0
+    assert (np.minimum(c - scene.room[0], scene.room[1] - c) > 0.5).all()
+    for lo, hi in scene.furniture:
+        assert (np.linalg.norm(c - np.clip(c, lo, hi), axis=1) > 0.5).all()
+    # One turn is 300 of the 330 frames: there the camera is back where it started, looking
+    # (nearly) the same way; halfway it is across the room looking the other way.
+    back = 300
+    assert np.linalg.norm(c[back] - c[0]) < 0.05
+    assert rotation_degrees(R[:1], R[back : back + 1])[0] < 20  # the sway differs
+    assert np.linalg.norm(c[back // 2] - c[0]) > 1.0
+    assert rotation_degrees(R[:1], R[back // 2 : back // 2 + 1])[0] > 120
+
+
 @pytest.mark.parametrize("seed", [0, 3])
 def test_views_along_the_path_are_textured_and_not_too_close(seed):
     scene = SynthScene(seed)
@@ -253,6 +273,7 @@ def test_rewriting_a_previous_output_replaces_its_frames(tmp_path):
         ({"noise": -1.0}, "noise"),
         ({"noise": float("nan")}, "noise"),
         ({"seed": -1}, "seed"),
+        ({"path": "spiral"}, "path"),
     ],
 )
 def test_bad_arguments_are_refused(tmp_path, kwargs, message):
