@@ -128,7 +128,8 @@ def run_dataset(
     mesh: bool = True,
     stride: int = 1,
 ) -> RunSummary:
-    """Run SLAM on a dataset and write trajectory, keyframes, mesh, config, log and metrics.
+    """Run SLAM on a dataset and write trajectory, keyframes, loops closed, mesh, config, log
+    and metrics.
 
     `stride`: every stride-th frame of the dataset (stride times the motion per frame);
     `max_frames` counts the frames used.
@@ -172,13 +173,18 @@ def run_dataset(
         traj = slam.trajectory()
         write_tum(out_dir / "trajectory.txt", traj, header=f"dimslam estimate of {source}")
         write_tum(out_dir / "keyframes.txt", slam.keyframe_trajectory(), header="keyframes")
+        slam.back.write_loops(out_dir / "loops.txt")
         mesh_path = None
         if mesh and slam.initialized:
             mesh_path = slam.back.write_mesh(out_dir)
         lost = len(slam.lost_frames)
         if lost:
             log.warning("%d frames lost (no pose): %s", lost, [i for i, _ in slam.lost_frames])
-        extra = {"frames_lost": lost, "map_mb": slam.back.field.memory_bytes() / 2**20}
+        extra = {
+            "frames_lost": lost,
+            "map_mb": slam.back.field.memory_bytes() / 2**20,
+            "loops_closed": len(slam.back.closed),
+        }
         metrics = report_run(source, out_dir, layout, mesh_path, seconds, len(traj), extra)
         return RunSummary(
             len(slam.frames) + lost,

@@ -9,12 +9,17 @@ drivers (`common/slam.py` in one process, `mapper/service.py` as a process of it
    (a mapper that fell behind, a stop) keep their tracked poses.
 3. After each round, every non-keyframe of the round records its pose relative to the
    keyframe before it, so the final trajectory follows later refinements of that keyframe.
-4. Frames no window will use again lose their images.
+4. Each new keyframe is described for place recognition and matched against the old ones;
+   a verified loop that disagrees with the poses is closed: a Sim(3) pose graph over the
+   keyframes moves them, the frames anchored to them follow, and the map is refitted to the
+   corrected poses (`mapper/loop.py`).
+5. Frames no window will use again lose their images.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,11 +29,12 @@ import torch
 
 from dimslam.common.config import SlamConfig
 from dimslam.common.eval.mesh_views import write_mesh_views
-from dimslam.common.geometry import pose
+from dimslam.common.geometry import pose, sim3
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
+from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 
 if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s to load
@@ -62,6 +68,12 @@ class BackEnd:
         self.initialized = False
         self.rounds = 0
         self.round_seconds: list[float] = []
+        self.closer = (
+            LoopCloser(cfg.loop, camera, cfg.render, cfg.tracker, cfg.mapper.gauge_depth, device)
+            if cfg.loop.enabled
+            else None
+        )
+        self.closed: list[Loop] = []
 
     @property
     def field(self):
@@ -101,11 +113,66 @@ class BackEnd:
         else:
             window = self.frames[-self.cfg.mapper.every :]
             result = self.mapper.map(window, self.keyframes)
+        self._anchor(window)
+        self._close_loops(window)
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
-        self._anchor(window)
         release_images(self.frames, self.cfg.kept_images)
         return result
+
+    def _close_loops(self, window: list[FrameState]) -> None:
+        """Describe the window's new keyframes and close the first loop one of them finds."""
+        if self.closer is None:
+            return
+        new = [f for f in window if f.keyframe and f.index not in self.closer.codes]
+        depth = map_depth(self.field, self.camera, self.cfg.render)
+        for f in new:
+            self.closer.add(f, depth)
+        keyframes = self.keyframes
+        for f in new:
+            loop = self.closer.detect(f, keyframes)
+            if loop is None:
+                continue
+            if self.closer.agrees(loop):
+                log.info(
+                    "loop %d -> %d agrees with the poses: nothing to correct", f.index, loop.old
+                )
+                continue
+            result = self.closer.correct(keyframes, loop)
+            moved = self._move(keyframes, result.nodes)
+            self.closed.append(loop)
+            started = time.perf_counter()
+            # Refit where the map moved most: windows about the keyframes moved farthest.
+            order = sorted(range(len(keyframes)), key=lambda k: -moved[k])
+            anchors = [keyframes[k] for k in order[: max(1, self.cfg.loop.refit_iters // 20)]]
+            self.mapper.post_optimize(keyframes, self.cfg.loop.refit_iters, anchors=anchors)
+            log.info(
+                "loop %d -> %d closed; map refitted to the corrected poses in %.1f s",
+                loop.new,
+                loop.old,
+                time.perf_counter() - started,
+            )
+            return
+
+    def _move(self, keyframes: list[FrameState], nodes: torch.Tensor) -> list[float]:
+        """Move keyframes to their corrected Sim(3) nodes (scale dropped from the poses), and
+        the frames anchored to them with them: their offsets scale with their keyframe.
+        Returns how far each keyframe moved."""
+        scales, moved = {}, []
+        for kf, node in zip(keyframes, nodes, strict=True):
+            T, s = sim3.to_pose(node)
+            T = T.to(kf.T_wc)
+            moved.append(float((T[:3, 3] - kf.T_wc[:3, 3]).norm()))
+            kf.T_wc = T
+            scales[id(kf)] = float(s)
+        for index, (kf, rel) in self.anchors.items():
+            rel = rel.clone()
+            rel[:3, 3] *= scales.get(id(kf), 1.0)
+            self.anchors[index] = (kf, rel)
+        for f in self.frames:
+            if not f.keyframe and f.index in self.anchors:
+                f.T_wc = self.final_pose(f)
+        return moved
 
     def finish(self) -> None:
         """End of the sequence: the optional post-optimization over all keyframes."""
@@ -146,6 +213,19 @@ class BackEnd:
             np.array([f.timestamp for f in frames], dtype=np.float64),
             np.stack([self.final_pose(f).detach().cpu().double().numpy() for f in frames]),
         )
+
+    def write_loops(self, path: Path) -> None:
+        """Write the loops closed (one line each: the keyframes, the check's figures and how
+        far the poses were from the loop before its correction)."""
+        lines = ["# new_keyframe old_keyframe pnp_inliers scale offset_gauge offset_deg\n"]
+        for loop in self.closed:
+            offset, angle, _ = loop.error
+            scale = float(sim3.scale_of(loop.S_old_new))
+            lines.append(
+                f"{loop.new} {loop.old} {loop.inliers} {scale:.4f} {offset:.4f} "
+                f"{math.degrees(angle):.2f}\n"
+            )
+        path.write_text("".join(lines))
 
     def extract_mesh(self) -> trimesh.Trimesh:
         """The map's surface seen from every frame held (see `Mapper.extract_mesh`).

@@ -491,12 +491,26 @@ class Mapper:
         return term
 
     @_learning
-    def post_optimize(self, keyframes: list[FrameState], chunk: int = 20) -> WindowStats | None:
-        """Map-only refinement over all keyframes, poses fixed (paper appendix)."""
+    def post_optimize(
+        self,
+        keyframes: list[FrameState],
+        iters: int | None = None,
+        chunk: int = 20,
+        anchors: list[FrameState] | None = None,
+    ) -> WindowStats | None:
+        """Map-only refinement over all keyframes, poses fixed (paper appendix); `iters`
+        iterations (default `post_iters`) in windows of `chunk` iterations, each of a keyframe
+        and the keyframes overlapping it: `anchors` in turn, random keyframes without them.
+        Also refits the map where a loop closure moved keyframes."""
         stats = None
-        remaining = self.cfg.post_iters
+        remaining = self.cfg.post_iters if iters is None else iters
+        turn = 0
         while remaining > 0 and len(keyframes) > 1:
-            anchor = keyframes[int(torch.randint(len(keyframes), (1,), generator=self.generator))]
+            if anchors:
+                anchor, turn = anchors[turn % len(anchors)], turn + 1
+            else:
+                pick = torch.randint(len(keyframes), (1,), generator=self.generator)
+                anchor = keyframes[int(pick)]
             others = [kf for kf in keyframes if kf is not anchor]
             chosen = overlapping_keyframes(
                 self.field,

@@ -453,12 +453,15 @@ class MapperService:
         return self.back.extract_mesh().export(file_type="ply", encoding="binary")
 
     def write(self, out: Path, mesh: bool) -> None:
-        """Flush the outputs: final trajectory, keyframes, map checkpoint and the mesh if asked."""
+        """Flush the outputs: final trajectory, keyframes, loops closed, map checkpoint and the
+        mesh if asked."""
         out.mkdir(parents=True, exist_ok=True)
         write_tum(out / "trajectory.txt", self.trajectory(), header="dimslam final poses")
         write_tum(out / "keyframes.txt", self.trajectory(keyframes_only=True), header="keyframes")
         if self.snapshot_bytes is not None:
             (out / "map.msgpack").write_bytes(self.snapshot_bytes)
+        if self.back is not None:
+            self.back.write_loops(out / "loops.txt")
         if mesh and self.back is not None and self.version > 0:
             self.back.write_mesh(out)
         log.info("outputs written to %s", out)

@@ -159,22 +159,28 @@ class DirectTracker:
         uv = torch.unique(uv, dim=0).float()
         with torch.no_grad():
             out = render_pixels(field, self.camera, uv, kf.T_wc, self.render_cfg, with_color=False)
-        good = torch.isfinite(out.depth) & (out.depth > 0) & (out.opacity > 0.5)
-        uv, depth = uv[good], out.depth[good]
+        depth = torch.where(out.opacity > 0.5, out.depth, math.nan)
+        ref = self.references[kf.index] = self.reference(kf, uv, depth)
+        return ref
+
+    def reference(self, kf: FrameState, uv: torch.Tensor, depth: torch.Tensor) -> Reference:
+        """`kf`'s pixels `uv` `(N, 2)` at `depth` `(N,)` (nan where unknown) as a reference,
+        not kept."""
+        assert kf.rgb is not None
+        good = torch.isfinite(depth) & (depth > 0)
+        uv, depth = uv[good], depth[good]
         images = pyramid(grey(kf.rgb), len(self.cameras))
         intensity = [
             losses.sample_images(img[..., None].expand(-1, -1, 3), level_uv(uv, lv))[:, 0]
             for lv, img in enumerate(images)
         ]
-        ref = Reference(
+        return Reference(
             kf,
             self.camera.unproject(uv, depth),
             intensity,
             self.version,
             texture(with_gradients(images[0])),
         )
-        self.references[kf.index] = ref
-        return ref
 
     def _overlaps(self, refs: list[Reference], T_cw: torch.Tensor) -> list[float]:
         """Per reference, the share of its points in front of the camera at `T_cw` and inside

@@ -198,11 +198,19 @@ def run_service(
         extra={
             "poses_published": online,
             "poses_received": n_received,
+            "loops_closed": _count_lines(out_dir / "loops.txt"),
             **stats,
         },
     )
     keyframes = len(read_tum(out_dir / "keyframes.txt"))
     return RunSummary(frames, keyframes, seconds, stats.get("frames_lost", 0), metrics)
+
+
+def _count_lines(path: Path) -> int:
+    """Lines of a text file that are not comments (0 if it is missing)."""
+    if not path.is_file():
+        return 0
+    return sum(1 for line in path.read_text().splitlines() if line and not line.startswith("#"))
 
 
 def _tracker_stats(path: Path) -> dict:

@@ -6,7 +6,7 @@ import torch
 from walls import CAM
 
 from dimslam.common.config import PRESETS
-from dimslam.common.geometry import pose
+from dimslam.common.geometry import pose, sim3
 from dimslam.common.map.mesh import EmptyMeshError
 from dimslam.common.optim.window import FrameState
 from dimslam.mapper.backend import BackEnd
@@ -36,3 +36,18 @@ def test_before_initialization_there_is_no_trajectory_and_no_mesh():
     assert len(back.trajectory()) == 0
     with pytest.raises(EmptyMeshError, match="no map yet"):
         back.extract_mesh()
+
+
+def test_a_loop_correction_moves_keyframes_and_scales_the_frames_anchored_to_them():
+    back = BackEnd(PRESETS["tiny"], CAM, torch.device("cpu"), torch.Generator())
+    frames = [FrameState(i, i / 30, None, moved(0.1 * i), keyframe=i in (0, 2)) for i in range(4)]
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    # The pose graph keeps keyframe 0 and moves keyframe 2 to x = 0.5 at twice the scale.
+    nodes = torch.stack([sim3.from_pose(moved(0.0)), sim3.from_pose(moved(0.5), 2.0)]).double()
+    back._move(back.keyframes, nodes)
+    x = [float(f.T_wc[0, 3]) for f in frames]
+    # Frame 1 keeps its offset from keyframe 0; frame 3's offset from keyframe 2 doubles.
+    assert x == pytest.approx([0.0, 0.1, 0.5, 0.7], abs=1e-6)
+    assert back.trajectory().poses[:, 0, 3].tolist() == pytest.approx(x, abs=1e-6)
