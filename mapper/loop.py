@@ -8,14 +8,15 @@ put the two apart. Closing the loop:
    descriptors are matched (Hamming, ratio test) against every keyframe at least `min_gap`
    frames older. Brute force is cheap at this scale (a few hundred keyframes of <= 1000
    features: about 1 ms per pair on one core), so no vocabulary has to be trained and shipped.
-2. Geometric check, against the map: the old keyframe's matched features are lifted to 3D with
-   the depth the map renders at them; PnP with RANSAC places the new keyframe against those
-   points (in the old place's scale); the tracker's direct solve then aligns the new image to
-   the old keyframe's high-gradient points from that pose (the dense check: a pose that does
-   not align photometrically is no loop, one that does is refined); the depth the map renders
-   at the new keyframe's features against the depth that pose predicts gives the scale between
-   the two places. The result is the measured Sim(3) of the new keyframe in the old one's
-   frame.
+2. Geometric check, against the map: when a keyframe is described, the map's depth at its
+   features is stored with it (the map of its time: a place the camera later comes back to
+   with drifted poses gets remapped). PnP with RANSAC places the new keyframe against the old
+   one's matched features at that depth (in the old place's scale); the tracker's direct
+   solve then aligns the new image to the old keyframe's features from that pose (the dense
+   check: a pose that does not align photometrically is no loop, one that does is refined);
+   the new keyframe's stored depth against the depth that pose predicts gives the scale
+   between the two places. The result is the measured Sim(3) of the new keyframe in the old
+   one's frame, kept only within `MAX_TURN`, `MAX_SCALE` and `MAX_DRIFT` of the poses.
 3. Correction: a Sim(3) pose graph over all keyframes (edges between consecutive keyframes
    from their current poses, plus every loop found so far) solved by Levenberg-Marquardt
    (`mapper/posegraph.py`); each keyframe moves by its node's change, the frames anchored to
@@ -23,7 +24,8 @@ put the two apart. Closing the loop:
    (`BackEnd`).
 
 A loop whose measurement already agrees with the current poses (within `LoopConfig.agree`)
-is recorded but changes nothing: returning to a well-mapped place keeps matching.
+changes nothing: returning to a well-mapped place keeps matching. One that does not is closed
+only once the next keyframe confirms it (`LoopConfig.confirm`).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import cv2
 import numpy as np
 import torch
 
-from dimslam.common.geometry import sim3
+from dimslam.common.geometry import pose, sim3
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.render import RenderConfig, render_pixels
 from dimslam.common.optim.window import FrameState, TrackingLost
@@ -192,7 +194,6 @@ class LoopCloser:
     ) -> None:
         self.cfg = cfg
         self.camera = camera
-        self.render_cfg = render_cfg
         self.gauge = gauge_depth
         # The dense check: the tracker's own solve, the new keyframe against the old one's
         # points (its thresholds decide whether the two images align). Its own random stream:
@@ -376,9 +377,9 @@ class LoopCloser:
         return np.linalg.inv(T_wo) @ solved.T_wc.double().cpu().numpy()
 
     def _disagreement(self, a: torch.Tensor, b: torch.Tensor) -> tuple[float, float, float]:
-        d = sim3.invert(a) @ b
-        T, s = sim3.to_pose(d)
-        angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(T[:3, :3])) - 1) / 2)))
+        """How far apart two Sim(3)s are: (translation / gauge, rotation rad, |log scale|)."""
+        T, s = sim3.to_pose(sim3.invert(a) @ b)
+        angle = float(pose.rotation_angle(T[:3, :3]))
         return float(T[:3, 3].norm()) / self.gauge, angle, abs(math.log(float(s)))
 
     def agrees(self, loop: Loop) -> bool:
