@@ -117,6 +117,16 @@ class LoopConfig:
         "A loop changes nothing when its measurement is within this of the current poses "
         "(scale and translation as a share of the gauge depth; rotation in radians).",
     )
+    max_residual: float = option(
+        0.1,
+        "The dense check's limit on the robust residual of the new image against the old "
+        "keyframe's features (as the tracker's `lost_residual`).",
+    )
+    min_share: float = option(
+        0.3,
+        "The dense check's least share of features within the Huber threshold (the "
+        "tracker's `min_inliers`).",
+    )
     refit_iters: int = option(
         60,
         "Map iterations, poses fixed, after a correction: windows of 20 about the keyframes "
@@ -199,7 +209,10 @@ class LoopCloser:
         # points (its thresholds decide whether the two images align). Its own random stream:
         # a run in which no loop is found draws the same pixels as one without loop closure.
         generator = torch.Generator(device).manual_seed(0)
-        self.aligner = DirectTracker(tracker_cfg, render_cfg, camera, generator)
+        limits = dataclasses.replace(
+            tracker_cfg, lost_residual=cfg.max_residual, min_inliers=cfg.min_share
+        )
+        self.aligner = DirectTracker(limits, render_cfg, camera, generator)
         self.codes: dict[int, KeyframeCode] = {}
         self.loops: list[Loop] = []
         self.last: Loop | None = None  # what the previous keyframe found, to be confirmed
