@@ -390,16 +390,13 @@ class SynthScene:
         centre = np.stack([np.interp(s % arc[-1], arc, loop[:, j]) for j in range(3)], 1)
         centre[:, 2] += 0.01 * np.sin(2 * np.pi * i / 28)
 
-        def sway(degrees: float, period: float) -> np.ndarray:
-            return np.radians(degrees) * np.sin(2 * np.pi * i / period + rng.uniform(0, 2 * np.pi))
-
         yaw = (
             rng.uniform(0, 2 * np.pi)
             + rng.choice([-1, 1]) * np.radians(0.4) * i
-            + sway(15, rng.uniform(280, 340))
+            + _sway(rng, i, 15, rng.uniform(280, 340))
         )
-        pitch = np.radians(-12) + sway(7, rng.uniform(200, 260)) + sway(1, 45)
-        roll = sway(3, rng.uniform(150, 190)) + sway(0.7, 37)
+        pitch = np.radians(-12) + _sway(rng, i, 7, rng.uniform(200, 260)) + _sway(rng, i, 1, 45)
+        roll = _sway(rng, i, 3, rng.uniform(150, 190)) + _sway(rng, i, 0.7, 37)
         return _orient(centre, yaw, pitch, roll)
 
     def loop_path(self, frames: int, turns: float = 1.1) -> np.ndarray:
@@ -434,13 +431,16 @@ class SynthScene:
             1,
         )
 
-        def sway(degrees: float, period: float) -> np.ndarray:
-            return np.radians(degrees) * np.sin(2 * np.pi * i / period + rng.uniform(0, 2 * np.pi))
-
-        yaw = phi + sway(8, rng.uniform(90, 130))
-        pitch = np.radians(-10) + sway(4, rng.uniform(70, 110))
-        roll = sway(2, rng.uniform(60, 90))
+        yaw = phi + _sway(rng, i, 8, rng.uniform(90, 130))
+        pitch = np.radians(-10) + _sway(rng, i, 4, rng.uniform(70, 110))
+        roll = _sway(rng, i, 2, rng.uniform(60, 90))
         return _orient(centre, yaw, pitch, roll)
+
+
+def _sway(rng: np.random.Generator, i: np.ndarray, degrees: float, period: float) -> np.ndarray:
+    """A hand's slow sway: `degrees` amplitude over `period` frames at frames `i`, in radians,
+    with a random phase drawn from `rng`."""
+    return np.radians(degrees) * np.sin(2 * np.pi * i / period + rng.uniform(0, 2 * np.pi))
 
 
 def _orient(centre: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
