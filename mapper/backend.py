@@ -9,6 +9,9 @@ drivers (`common/slam.py` in one process, `mapper/service.py` as a process of it
    (a mapper that fell behind, a stop) keep their tracked poses.
 3. After each round, every non-keyframe of the round records its pose relative to the
    keyframe before it, so the final trajectory follows later refinements of that keyframe.
+   Every `mapper.global_every` rounds a global refinement round follows (`refine_global`):
+   a window about a random keyframe, anywhere on the path, with its overlapping keyframes,
+   poses and map optimized together.
 4. Each new keyframe is described for place recognition and matched against the old ones;
    a verified loop that disagrees with the poses is closed: a Sim(3) pose graph over the
    keyframes moves them, the frames anchored to them follow, and the map is refitted to the
@@ -114,6 +117,9 @@ class BackEnd:
             window = self.frames[-self.cfg.mapper.every :]
             result = self.mapper.map(window, self.keyframes)
         self._anchor(window)
+        every = self.cfg.mapper.global_every
+        if every > 0 and self.rounds > 0 and self.rounds % every == 0:
+            self.refine_global()
         self._close_loops(window)
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
@@ -153,6 +159,16 @@ class BackEnd:
                 time.perf_counter() - started,
             )
             return
+
+    def refine_global(self, iters: int | None = None) -> None:
+        """A global refinement round (`mapper.global_every`; `iters`, default
+        `mapper.global_iters`): keyframes anywhere on the path and the map optimized together,
+        in one window about a random keyframe; the frames anchored to keyframes follow."""
+        iters = self.cfg.mapper.global_iters if iters is None else iters
+        self.mapper.post_optimize(self.keyframes, iters, chunk=iters, poses=True)
+        for f in self.frames:
+            if not f.keyframe and f.index in self.anchors:
+                f.T_wc = self.final_pose(f)
 
     def _move(self, keyframes: list[FrameState], nodes: torch.Tensor) -> list[float]:
         """Move keyframes to their corrected Sim(3) nodes (scale dropped from the poses), and

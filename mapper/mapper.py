@@ -117,6 +117,13 @@ class MapperConfig:
     )
     stereo_sources: int = option(4, "Neighbouring frames a keyframe's plane sweep compares.")
     post_iters: int = option(0, "Map-only post-optimization iterations over all keyframes.")
+    global_every: int = option(
+        0,
+        "Mapping rounds between global refinement rounds: windows of a keyframe and the "
+        "keyframes overlapping it, anywhere on the path, poses and map optimized together "
+        "(0: never).",
+    )
+    global_iters: int = option(20, "Iterations of a global refinement round.")
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
     mesh_coarse: bool = option(
@@ -497,11 +504,13 @@ class Mapper:
         iters: int | None = None,
         chunk: int = 20,
         anchors: list[FrameState] | None = None,
+        poses: bool = False,
     ) -> WindowStats | None:
-        """Map-only refinement over all keyframes, poses fixed (paper appendix); `iters`
-        iterations (default `post_iters`) in windows of `chunk` iterations, each of a keyframe
-        and the keyframes overlapping it: `anchors` in turn, random keyframes without them.
-        Also refits the map where a loop closure moved keyframes."""
+        """Refinement over all keyframes (paper appendix): `iters` iterations (default
+        `post_iters`) in windows of `chunk` iterations, each of a keyframe and the keyframes
+        overlapping it: `anchors` in turn, random keyframes without them. Map only, or with
+        the keyframes' poses (`poses`; frame 0 stays). Also refits the map where a loop
+        closure moved keyframes."""
         stats = None
         remaining = self.cfg.post_iters if iters is None else iters
         turn = 0
@@ -529,11 +538,11 @@ class Mapper:
             stats = optimize_window(
                 self.field,
                 window,
-                [False] * len(window),
+                [poses and f.index != 0 for f in window],
                 self.camera,
                 self._sampler(len(window)),
                 min(chunk, remaining),
-                0.0,
+                self.cfg.pose_lr if poses else 0.0,
                 self.loss_cfg,
                 self.render_cfg,
                 map_optimizer=self._adam(self._groups(0.0)),

@@ -12,6 +12,9 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
   Offline runs never fall that far behind (`dimslam-tracker --map-lag`).
 - After each round: a versioned snapshot (map tensors, refined poses of every keyframe and of
   the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
+- With `mapper.global_every` set, a mapper that waits for a batch spends the wait on short
+  chunks of global refinement (keyframes anywhere on the path and the map), each published
+  as a snapshot, up to `IDLE_CHUNKS` per batch.
 - A tracker whose mapper was restarted sends its own snapshot on the mapping topic, then its
   newest keyframes: a mapper without a map (only) takes them as its starting point.
 - Queries: `query/map` (the newest snapshot), `query/keyframes` (the newest keyframes with
@@ -72,6 +75,9 @@ from dimslam.mapper.backend import BackEnd
 log = logging.getLogger(__name__)
 
 WAIT_S = 0.5
+IDLE_CHUNKS = 20
+"""Global refinement chunks (`mapper.global_every`) a mapper runs while no batch comes, after
+each batch; then it waits without work (a stream that paused or ended costs no CPU for long)."""
 MAX_BACKLOG = 2
 """Batches that may wait and still be mapped one round each. A tracker at `--map-lag 1` can
 have two waiting at the end of a round (it tracks fast, the mapper reads its inbox a moment
@@ -116,6 +122,8 @@ class MapperService:
         self.seed: MapSnapshot | None = None
         self.rejects = Rejects()
         self.backlog: list[MappingBatch] = []  # received, not yet mapped
+        self.idle_chunks = 0  # global refinement chunks run idle since the last round
+        self.idle_total = 0
         # Frames of the stream admitted so far: a batch of none but these is a duplicate.
         self.received: set[int] = set()
         self.ended_ns = -1  # the send stamp of the last end of stream
@@ -187,6 +195,7 @@ class MapperService:
             else:
                 item = self.batches_in.get(WAIT_S)
                 if item is None:
+                    self._idle()
                     continue
                 self.backlog = self._parse([item, *self.batches_in.drain()])
             n = 1 if len(self.backlog) <= MAX_BACKLOG else len(self.backlog)
@@ -203,9 +212,11 @@ class MapperService:
         self.mesh_queries.answer_all(self.mesh_ply)
         seconds = self.back.round_seconds if self.back is not None else []
         log.info(
-            "%d rounds (median %.1f s), map version %d, %d keyframes, %d rejected messages",
+            "%d rounds (median %.1f s), %d idle refinement chunks, map version %d, "
+            "%d keyframes, %d rejected messages",
             self.rounds,
             float(np.median(seconds)) if seconds else 0.0,
+            self.idle_total,
             self.version,
             len(self.keyframes),
             self.rejects.count,
@@ -302,11 +313,29 @@ class MapperService:
         """One round on the frames just received: initialization first, then mapping."""
         assert self.back is not None
         result = self.back.step()
+        self.idle_chunks = 0
         by_index = {f.index: f for f in self.frames}
         self._publish(batches[-1].round, [by_index[i] for i in result.window])
         every = self.checkpoint_every
         if self.checkpoint_dir is not None and every > 0 and self.rounds % every == 0:
             self.write_checkpoint(self.checkpoint_dir)
+
+    def _idle(self) -> None:
+        """No batch waiting: a short chunk of global refinement, published as a snapshot
+        (`mapper.global_every` > 0; at most `IDLE_CHUNKS` after each batch)."""
+        back = self.back
+        if (
+            back is None
+            or not back.initialized
+            or self.cfg.mapper.global_every <= 0
+            or self.idle_chunks >= IDLE_CHUNKS
+            or len(back.keyframes) < 2
+        ):
+            return
+        self.idle_chunks += 1
+        self.idle_total += 1
+        back.refine_global(max(1, self.cfg.mapper.global_iters // 4))
+        self._publish(self.last_round, [])
 
     def _seed(self, snap: MapSnapshot) -> None:
         """A tracker's map, sent because this mapper had none: kept for its next batch."""

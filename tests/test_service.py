@@ -158,6 +158,26 @@ def test_realtime_replays_the_sequence_as_a_live_camera(sequence, tmp_path, caps
     assert metrics["ate_rmse_m"] < 0.25
 
 
+def test_an_idle_mapper_refines_globally_and_publishes_it(sequence, tmp_path):
+    """`mapper.global_every`: between batches of a slow live camera the mapper refines
+    keyframes anywhere on the path and the map, and publishes each chunk as a snapshot."""
+    out = tmp_path / "run"
+    args = ["--preset", "tiny", "--no-mesh", "--realtime", "3", "--mapper.global_every", "2"]
+    args += ["--mapper.iters", "4"]
+    assert main(["run", str(sequence), "--out", str(out), *args]) == 0
+    summary = re.search(
+        r"(\d+) rounds .*, (\d+) idle refinement chunks, map version (\d+)",
+        (out / "mapper.log").read_text(),
+    )
+    assert summary, "the mapper's summary line is missing"
+    rounds, idle, version = map(int, summary.groups())
+    # A batch every 1.7 s and rounds of a fraction of that: the mapper waited, and refined.
+    assert idle > 0 and version == rounds + idle
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["poses_received"] == metrics["frames"] - metrics["frames_lost"]
+    assert metrics["ate_rmse_m"] < 0.25
+
+
 def _start(module: str, *args: str, log) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", module, *args], stdout=log, stderr=subprocess.STDOUT

@@ -1,14 +1,15 @@
-"""The mapper's half of the pipeline without mapping work: the final trajectory re-anchors
-every other frame to its keyframe."""
+"""The mapper's half of the pipeline: the final trajectory re-anchors every other frame to its
+keyframe, and follows the keyframes a loop correction or a global refinement round moves."""
 
 import pytest
 import torch
-from walls import CAM
+from walls import CAM, textured_wall_image
 
 from dimslam.common.config import PRESETS
 from dimslam.common.geometry import pose, sim3
 from dimslam.common.map.mesh import EmptyMeshError
 from dimslam.common.optim.window import FrameState
+from dimslam.common.options import apply_overrides
 from dimslam.mapper.backend import BackEnd
 
 
@@ -51,3 +52,21 @@ def test_a_loop_correction_moves_keyframes_and_scales_the_frames_anchored_to_the
     # Frame 1 keeps its offset from keyframe 0; frame 3's offset from keyframe 2 doubles.
     assert x == pytest.approx([0.0, 0.1, 0.5, 0.7], abs=1e-6)
     assert back.trajectory().poses[:, 0, 3].tolist() == pytest.approx(x, abs=1e-6)
+
+
+def test_a_global_refinement_round_moves_keyframes_and_the_frames_anchored_to_them():
+    cfg = apply_overrides(PRESETS["tiny"], {"mapper.global_iters": "4", "mapper.pixels": "64"})
+    back = BackEnd(cfg, CAM, torch.device("cpu"), torch.Generator().manual_seed(0))
+    frames = [
+        FrameState(i, i / 30, textured_wall_image(moved(0.05 * i)), moved(0.05 * i), i % 2 == 0)
+        for i in range(6)
+    ]
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    before = [f.T_wc.clone() for f in frames]
+    rel = pose.compose(pose.invert(before[2]), before[3])
+    back.refine_global()
+    assert torch.equal(frames[0].T_wc, before[0])
+    assert not torch.equal(frames[2].T_wc, before[2])
+    assert torch.allclose(frames[3].T_wc, pose.compose(frames[2].T_wc, rel), atol=1e-5)

@@ -51,3 +51,19 @@ def test_kept_adam_state_carries_over_between_rounds():
             assert steps == [6.0, 6.0]
         else:
             assert steps == []
+
+
+def test_global_refinement_moves_keyframes_anywhere_on_the_path_but_frame_0():
+    """`post_optimize(poses=True)` (a global refinement round) moves the poses of the
+    keyframes in its windows, whichever they are, except frame 0's; map-only it moves none."""
+    poses = [pose.make_pose(torch.eye(3), torch.tensor([0.05 * i, 0.0, 0.0])) for i in range(5)]
+    for poses_too in (False, True):
+        torch.manual_seed(0)
+        frames = [
+            FrameState(i, i / 30, textured_wall_image(T), T.clone(), keyframe=True)
+            for i, T in enumerate(poses)
+        ]
+        m = mapper(pixels=64)
+        m.post_optimize(frames, iters=4, chunk=2, anchors=[frames[0], frames[3]], poses=poses_too)
+        moved = [not torch.equal(f.T_wc, T) for f, T in zip(frames, poses, strict=True)]
+        assert moved == [False] + [poses_too] * 4
