@@ -126,6 +126,7 @@ class MapperConfig:
     global_iters: int = option(20, "Iterations of a global refinement round.")
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
+    mesh_width: int = option(160, "Width of the depth images rendered for the mesh's fusion.")
     mesh_coarse: bool = option(
         True,
         "Fuse the depth on every other grid point first, at full resolution only near the "
@@ -564,7 +565,7 @@ class Mapper:
         views = poses[
             torch.linspace(0, len(poses) - 1, min(len(poses), self.cfg.mesh_views)).round().long()
         ]
-        small = self.camera.resized(min(self.camera.width, 160))
+        small = self.camera.resized(min(self.camera.width, self.cfg.mesh_width))
         with torch.no_grad():
             depths = torch.stack(
                 [render_image(field, small, T, self.render_cfg)[0].cpu() for T in views]
