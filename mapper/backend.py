@@ -166,9 +166,7 @@ class BackEnd:
         in one window about a random keyframe; the frames anchored to keyframes follow."""
         iters = self.cfg.mapper.global_iters if iters is None else iters
         self.mapper.post_optimize(self.keyframes, iters, chunk=iters, poses=True)
-        for f in self.frames:
-            if not f.keyframe and f.index in self.anchors:
-                f.T_wc = self.final_pose(f)
+        self._follow_anchors()
 
     def _move(self, keyframes: list[FrameState], nodes: torch.Tensor) -> list[float]:
         """Move keyframes to their corrected Sim(3) nodes (scale dropped from the poses), and
@@ -185,10 +183,14 @@ class BackEnd:
             rel = rel.clone()
             rel[:3, 3] *= scales.get(id(kf), 1.0)
             self.anchors[index] = (kf, rel)
+        self._follow_anchors()
+        return moved
+
+    def _follow_anchors(self) -> None:
+        """Every anchored frame takes its final pose (after its keyframe moved)."""
         for f in self.frames:
             if not f.keyframe and f.index in self.anchors:
                 f.T_wc = self.final_pose(f)
-        return moved
 
     def finish(self) -> None:
         """End of the sequence: the optional post-optimization over all keyframes."""
