@@ -75,6 +75,8 @@ class Slam:
             return list(self.frames)
         state = self.front.track(self.back.field, index, frame.timestamp, rgb)
         if state is None:
+            if self.front.batch_due():  # what was tracked up to the loss
+                self._map_batch()
             return []
         self.last_loss = self.front.last_result.stats.loss
         if self.front.batch_due():

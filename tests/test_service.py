@@ -17,6 +17,7 @@ from contextlib import ExitStack
 
 import numpy as np
 import pytest
+from covered import covered_copy
 
 from dimslam.common.cli import main
 from dimslam.common.io.trajectory import read_tum
@@ -117,6 +118,25 @@ def test_map_lag_0_tracks_every_frame_on_the_newest_map(sequence, tmp_path):
     # tracked while a batch it had sent was still being mapped.
     assert stats["tracked"] > 0 and stats["frames_mapper_busy"] == 0
     assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
+
+
+def test_a_lost_tracker_hands_over_its_frames_and_relocalizes(sequence, tmp_path):
+    """Ten frames blanked mid-sequence: each is published lost (no pose invented), the
+    frames tracked before the loss go to the mapper at once, and tracking resumes."""
+    seq = covered_copy(sequence, tmp_path / "seq", 18, 28)
+    out = tmp_path / "run"
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh"]
+    assert main(["run", str(seq), "--out", str(out), *args]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames_lost"] == 10 and metrics["matched"] == FRAMES - 10
+    stamps = read_tum(sequence / "groundtruth.txt").timestamps
+    tracked = list(read_tum(out / "trajectory.txt").timestamps)
+    assert tracked == pytest.approx([*stamps[:18], *stamps[28:]])
+    assert "relocalized at frame 28 after 10 lost frames" in (out / "tracker.log").read_text()
+    # Rounds: the initialization (frames 0-7), frames 8-10, 11-15, 16-17 (handed over at
+    # the loss, off the 5-frame rhythm), 28-30 and 31-35.
+    assert "mapper.service: 6 rounds" in (out / "mapper.log").read_text()
+    assert metrics["ate_rmse_m"] < 0.04
 
 
 def test_a_sparse_map_travels_between_the_processes(sequence, tmp_path):

@@ -15,8 +15,8 @@ What every frame goes through on the tracking side, written once for both driver
    solve ended (`TrackingLost.best`) still feeds the motion model, so that through a stretch
    where the map is too poor to accept a solve the guesses keep following the camera.
 3. Every `mapper.every` frames the frames tracked since the last hand-over are due to the
-   mapper (`batch_due`, `take_batch`); how they get there is the driver's business (the same
-   objects in one process, a message in the service).
+   mapper (`batch_due`, `take_batch`), and at once when a frame is lost; how they get there
+   is the driver's business (the same objects in one process, a message in the service).
 4. Frames no window will use again lose their images.
 
 Refined poses come back from the mapper: in one process they are the same objects; the
@@ -204,10 +204,14 @@ class FrontEnd:
         return self.tracker.map_changed(field, self.keyframes, version)
 
     def batch_due(self) -> bool:
-        """Whether the frames tracked since the last hand-over make a mapping round."""
+        """Whether the frames tracked since the last hand-over make a mapping round: every
+        `mapper.every` frames, and at once when the tracker is lost. A frame is mostly lost
+        where the camera has run ahead of the map (the residual climbs over the frames before
+        the loss), and no later frame can be placed until the map there improves: the frames
+        tracked up to the loss are what it needs."""
         every = self.cfg.mapper.every
         return bool(self.pending) and (
-            self.pending[-1].index % every == 0 or len(self.pending) >= every
+            self.relocalizing or self.pending[-1].index % every == 0 or len(self.pending) >= every
         )
 
     def take_batch(self) -> list[FrameState]:

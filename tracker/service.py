@@ -448,6 +448,8 @@ class TrackerService:
                 seq - self.offset, timestamp, None, map_version=self.map_version, lost=True
             )
             self.pose_pub.put(lost.to_bytes())
+            if self.front.batch_due():  # what was tracked up to the loss
+                self._send_batch(self.front.take_batch())
             return
         self.stats.tracked += 1
         self._publish_pose(state)

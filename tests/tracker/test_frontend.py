@@ -47,6 +47,18 @@ def test_a_batch_is_due_every_few_frames():
     assert f.batch_due()
 
 
+def test_a_loss_hands_over_what_was_tracked_at_once():
+    """A frame lost where the camera ran ahead of the map: the frames tracked before it go
+    to the mapper at once, not when the batch would have been complete."""
+    f = front()
+    f.pending = [FrameState(i, 0.0, None, torch.eye(4)) for i in (11, 12)]
+    assert not f.batch_due()  # tracking: the batch is not complete
+    f.gap = 1  # the next frame was lost
+    assert f.batch_due()
+    assert [s.index for s in f.take_batch()] == [11, 12]
+    assert not f.batch_due()  # still lost, nothing tracked since
+
+
 def test_guess_carries_the_motion_on_but_not_across_a_long_gap():
     f = front()
     f.frames = [FrameState(0, 0.0, None, moved(0.0)), FrameState(1, 0.0, None, moved(0.1))]
