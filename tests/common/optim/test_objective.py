@@ -1,0 +1,52 @@
+"""The window objective's optional opacity term."""
+
+import dataclasses
+
+import torch
+
+from dimslam.common.geometry import pose
+from dimslam.common.geometry.camera import Camera
+from dimslam.common.map.field import DenseField, MapConfig
+from dimslam.common.map.render import RenderConfig, render_pixels
+from dimslam.common.optim.objective import LossConfig, window_objective
+
+CAM = Camera(40, 30, 35.0, 35.0, 19.5, 14.5)
+RENDER = RenderConfig(n_stratified=16, n_importance=8, importance_rounds=1, near=0.1, far=1.5)
+ONLY_OPACITY = LossConfig(warp_weight=0.0, render_weight=0.0, opacity_weight=1.0)
+
+
+def test_the_opacity_term_is_the_mean_squared_transparency_and_makes_rays_stop():
+    torch.manual_seed(0)
+    field = DenseField(MapConfig(voxel_sizes=(0.5, 0.25), bound=(-2.0, -2.0, -2.0, 2.0, 2.0, 2.0)))
+    images = torch.rand(2, CAM.height, CAM.width, 3)
+    poses = torch.stack([torch.eye(4), pose.make_pose(torch.eye(3), torch.tensor([0.1, 0, 0]))])
+    uv = torch.tensor([[u, v] for u in range(6, 34, 4) for v in range(6, 24, 4)]).float()
+    frame = torch.zeros(len(uv), dtype=torch.long)
+
+    def opacity() -> torch.Tensor:
+        with torch.no_grad():
+            return render_pixels(field, CAM, uv, poses[frame], RENDER).opacity
+
+    def loss(cfg: LossConfig) -> torch.Tensor:
+        return window_objective(field, images, poses, CAM, frame, uv, cfg, RENDER).total
+
+    optimizer = torch.optim.Adam(field.parameters(), lr=1e-2)
+    for _ in range(100):  # first a map through which the rays mostly pass
+        optimizer.zero_grad()
+        passed = render_pixels(field, CAM, uv, poses[frame], RENDER).opacity.mean()
+        if float(passed.detach()) < 0.4:
+            break
+        passed.backward()
+        optimizer.step()
+    before = opacity()
+    assert float(before.mean()) < 0.5
+    # Deterministic rendering (no generator): the term is exactly the mean of (1 - opacity)^2.
+    assert torch.isclose(loss(ONLY_OPACITY), (1 - before).square().mean(), rtol=1e-4)
+    off = dataclasses.replace(ONLY_OPACITY, opacity_weight=0.0)
+    assert float(loss(off).detach()) == 0.0
+    optimizer = torch.optim.Adam(field.parameters(), lr=1e-2)
+    for _ in range(20):
+        optimizer.zero_grad()
+        loss(ONLY_OPACITY).backward()
+        optimizer.step()
+    assert float(opacity().mean()) > float(before.mean()) + 0.1, (before.mean(), opacity().mean())
