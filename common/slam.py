@@ -74,13 +74,11 @@ class Slam:
             self.last_loss = self._map_batch().stats.loss
             return list(self.frames)
         state = self.front.track(self.back.field, index, frame.timestamp, rgb)
+        if self.front.batch_due():  # a complete batch, or what was tracked up to a loss
+            self._map_batch()
         if state is None:
-            if self.front.batch_due():  # what was tracked up to the loss
-                self._map_batch()
             return []
         self.last_loss = self.front.last_result.stats.loss
-        if self.front.batch_due():
-            self._map_batch()
         return [state]
 
     def _map_batch(self) -> MapRound:

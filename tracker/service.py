@@ -448,13 +448,11 @@ class TrackerService:
                 seq - self.offset, timestamp, None, map_version=self.map_version, lost=True
             )
             self.pose_pub.put(lost.to_bytes())
-            if self.front.batch_due():  # what was tracked up to the loss
-                self._send_batch(self.front.take_batch())
-            return
-        self.stats.tracked += 1
-        self._publish_pose(state)
-        self.stats.latency_seconds.append((now_ns() - sent_ns) / 1e9)
-        if self.front.batch_due():
+        else:
+            self.stats.tracked += 1
+            self._publish_pose(state)
+            self.stats.latency_seconds.append((now_ns() - sent_ns) / 1e9)
+        if self.front.batch_due():  # a complete batch, or what was tracked up to a loss
             self._send_batch(self.front.take_batch())
 
     def _unmapped(self) -> int:
