@@ -11,6 +11,9 @@ Each half is checked against ground truth before blaming the whole:
                                                    # (--depth-every N: and the map's scale)
     python benchmarks/diagnose.py keyframes SEQ    # after the run, each keyframe's depth scale:
                                                    # the map's and its plane sweep's
+    python benchmarks/diagnose.py mesh SEQ --out D # after the run, the mesh as the mapper makes
+                                                   # it and from the true depth at the estimated
+                                                   # keyframe poses: what the poses allow
 
 SEQ is a TUM-layout sequence with `depth.txt` (exact depth: `dimslam synth` output or
 ../shared/data/room0). Settings: `--preset` plus `section.field=value` overrides. Ground truth
@@ -399,13 +402,58 @@ def cmd_keyframes(args) -> None:
         )
 
 
+def cmd_mesh(args) -> None:
+    """The whole system over `--frames`, then two meshes, each evaluated as a run's is (the
+    trajectory's Sim(3), culled to the true frustums): the mapper's (the depth the map
+    renders, fused) and one fused from the true depth at the keyframes' estimated poses, in
+    map units (divided by the alignment's scale). The second is what a perfect depth would
+    give at these poses: the part of the mesh error that is the poses'."""
+    from dimslam.common.eval.report import evaluate_files, format_metrics
+    from dimslam.common.io.trajectory import write_tum
+    from dimslam.common.map.mesh import write_mesh
+
+    if args.out is None:
+        raise SystemExit("error: mesh needs --out DIR (meshes and trajectory go there)")
+    cfg, camera, frames = load(args)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    for _ in _feed(slam, frames):
+        pass
+    if not slam.initialized:
+        raise SystemExit("error: the system did not initialize")
+    slam.finish()
+    args.out.mkdir(parents=True, exist_ok=True)
+    traj = slam.trajectory()
+    write_tum(args.out / "trajectory.txt", traj)
+    gt = _ground_truth(frames)
+    alignment = evaluate_trajectory(traj, gt).alignment
+    mapper = slam.back.mapper
+    poses = torch.from_numpy(traj.poses).float()
+    small = camera.resized(min(camera.width, cfg.mapper.mesh_width))
+    keyframes = slam.keyframes
+    true = gt_depths(Path(args.seq), [frames[kf.index] for kf in keyframes], small)
+    meshes = {
+        "mesh_map.ply": mapper.extract_mesh(poses, cfg.render.far),
+        "mesh_true_depth.ply": mapper.fuse_mesh(
+            torch.from_numpy(np.stack(true)) / alignment.s,
+            torch.stack([kf.T_wc.detach().cpu() for kf in keyframes]),
+            small,
+            poses,
+            cfg.render.far,
+        ),
+    }
+    for name, mesh in meshes.items():
+        write_mesh(mesh, args.out / name)
+        metrics = evaluate_files(args.out / "trajectory.txt", args.seq, mesh=args.out / name)
+        print(f"{name}:\n{format_metrics(metrics)}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
         "command",
-        choices=["map-oracle", "single", "landscape", "mapper", "init", "run", "keyframes"],
+        choices=["map-oracle", "single", "landscape", "mapper", "init", "run", "keyframes", "mesh"],
     )
     parser.add_argument("seq", help="TUM-layout sequence with depth.txt")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
@@ -421,6 +469,7 @@ def main() -> None:
         default=0,
         help="run: every N frames, the map's depth scale at the newest frame (0: never)",
     )
+    parser.add_argument("--out", type=Path, help="mesh: folder for the meshes and trajectory")
     parser.add_argument("--until", type=int, help="map-oracle: track only frames before this")
     parser.add_argument(
         "--map-cache",
@@ -442,6 +491,7 @@ def main() -> None:
         "init": cmd_init,
         "run": cmd_run,
         "keyframes": cmd_keyframes,
+        "mesh": cmd_mesh,
     }
     commands[args.command](args)
 

@@ -561,15 +561,29 @@ class Mapper:
         several samples of moderate occupancy), so the surface is the 0.5 level of the
         occupancy fused from the depth the map renders at up to `mesh_views` of `poses`.
         """
-        field = self.field
         views = poses[
             torch.linspace(0, len(poses) - 1, min(len(poses), self.cfg.mesh_views)).round().long()
         ]
         small = self.camera.resized(min(self.camera.width, self.cfg.mesh_width))
         with torch.no_grad():
             depths = torch.stack(
-                [render_image(field, small, T, self.render_cfg)[0].cpu() for T in views]
+                [render_image(self.field, small, T, self.render_cfg)[0].cpu() for T in views]
             )
+        return self.fuse_mesh(depths, views, small, poses, max_depth, progress)
+
+    def fuse_mesh(
+        self,
+        depths: torch.Tensor,
+        views: torch.Tensor,
+        small: Camera,
+        poses: torch.Tensor,
+        max_depth: float,
+        progress=None,
+    ):
+        """The 0.5 level of the occupancy fused from `depths` (`(V, h, w)`, map units, at
+        `small`'s size) seen from `views` (`(V, 4, 4)`), culled to the frustums of `poses`,
+        coloured by the map."""
+        field = self.field
         occupancy = meshing.fused_occupancy(
             depths, views.cpu(), small, truncation=3 * self.cfg.mesh_voxel
         )
