@@ -72,8 +72,8 @@ PRESETS: dict[str, SlamConfig] = {
                 window_keyframes=6,
                 # A global refinement round after every 2nd mapping round: whole runs, means of
                 # seeds 0 and 1, room0 9.00 -> 3.76 cm, room3 22.80 -> 21.15, room5 11.04 ->
-                # 7.43; 7-Scenes seed 0 4.59 -> 4.28 (docs/results.md, "Global refinement
-                # rounds over whole runs").
+                # 7.43, 7-Scenes 4.06 -> 3.86 (docs/results.md, "Global refinement rounds
+                # over whole runs").
                 global_every=2,
                 init_grow_iters=40,
                 init_iters=200,
