@@ -135,8 +135,8 @@ class BackEnd:
         that the first tracked frame has a keyframe beside it: a camera that moved far during
         the initialization (room3 at stride 3 walks 84 cm in 13 frames) otherwise tracks its
         first frames against frame 0 alone. At stride 1 the tracker would make the first
-        tracked frame a keyframe instead (every initialization frame by the rule cost room0
-        at stride 1 4.6 cm over 150 frames, docs/results.md)."""
+        tracked frame a keyframe anyway, and this one frame earlier cost room0 1.3 cm over
+        150 frames (3 seeds), so `mapper.init_keyframe` is off (docs/results.md, "Session 8")."""
         first, last = frames[0], frames[-1]
         if len(frames) > 1 and keyframe_due(
             self.camera,
