@@ -36,8 +36,7 @@ from dimslam.common.geometry import pose, sim3
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
-from dimslam.common.map.render import render_pixels
-from dimslam.common.optim.window import FrameState, keyframe_due, release_images
+from dimslam.common.optim.window import FrameState, release_images
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 
@@ -114,8 +113,6 @@ class BackEnd:
                 result.stats.warp,
             )
             window = self.frames
-            if self.cfg.mapper.init_keyframe:
-                self._initial_keyframes(window)
         else:
             window = self.frames[-self.cfg.mapper.every :]
             result = self.mapper.map(window, self.keyframes)
@@ -128,39 +125,6 @@ class BackEnd:
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
         return result
-
-    def _initial_keyframes(self, frames: list[FrameState]) -> None:
-        """The initialization's last frame becomes a keyframe when the tracker's rule says so
-        against frame 0 (`keyframe_due`, on a grid of frame 0's pixels at the map's depth), so
-        that the first tracked frame has a keyframe beside it: a camera that moved far during
-        the initialization (room3 at stride 3 walks 84 cm in 13 frames) otherwise tracks its
-        first frames against frame 0 alone. At stride 1 the tracker would make the first
-        tracked frame a keyframe anyway, and this one frame earlier cost room0 1.3 cm over
-        150 frames (3 seeds), so `mapper.init_keyframe` is off (docs/results.md, "Session 8")."""
-        first, last = frames[0], frames[-1]
-        if len(frames) > 1 and keyframe_due(
-            self.camera,
-            self._grid_points(first),
-            first.T_wc,
-            last.T_wc,
-            self.cfg.tracker.keyframe_overlap,
-            self.cfg.tracker.keyframe_flow_px,
-        ):
-            last.keyframe = True
-        log.info("initialization's keyframes: %s", [f.index for f in frames if f.keyframe])
-
-    def _grid_points(self, frame: FrameState, step: int = 16) -> torch.Tensor:
-        """World points of a grid of `frame`'s pixels (every `step`) at the map's depth."""
-        cam = self.camera
-        v, u = torch.meshgrid(
-            torch.arange(step / 2, cam.height, step, dtype=torch.float32),
-            torch.arange(step / 2, cam.width, step, dtype=torch.float32),
-            indexing="ij",
-        )
-        uv = torch.stack([u.flatten(), v.flatten()], dim=-1).to(frame.T_wc.device)
-        with torch.no_grad():
-            out = render_pixels(self.field, cam, uv, frame.T_wc, self.cfg.render, with_color=False)
-        return pose.transform_points(frame.T_wc, cam.unproject(uv, out.depth))
 
     def _close_loops(self, window: list[FrameState]) -> None:
         """Describe the window's new keyframes and close the first loop one of them finds."""

@@ -104,12 +104,6 @@ class MapperConfig:
         "An initialization whose warp residual ends above this starts again from poses of "
         "tracked corners and keeps the better fit (0: never).",
     )
-    init_keyframe: bool = option(
-        False,
-        "Make the initialization's last frame a keyframe when the tracker's keyframe rule says "
-        "so against frame 0 (fast motion: room3 at stride 3, 3 seeds, 38.9 -> 18.1 cm and no "
-        "frame lost; at stride 1 room0 lost 1.3 cm over 150 frames, 3 seeds: off).",
-    )
     prior_iters: int = option(200, "Iterations fitting the initial plane at the gauge depth.")
     gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
     gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")

@@ -79,6 +79,7 @@ class FrontEnd:
         # (index, T_wc) where the solves of the frames lost since the last one tracked ended,
         # when they ended somewhere (`TrackingLost.best`): followed by the motion model only.
         self.followed: list[tuple[int, torch.Tensor]] = []
+        self.init_last = -1  # index of the newest frame the initialization mapped
 
     @property
     def relocalizing(self) -> bool:
@@ -96,6 +97,7 @@ class FrontEnd:
         if len(self.frames) < self.cfg.mapper.init_frames:
             return False
         self.pending = list(self.frames)
+        self.init_last = index
         return True
 
     def collect_rest(self) -> bool:
@@ -104,6 +106,7 @@ class FrontEnd:
         if len(self.frames) < 3:
             return False
         self.pending = list(self.frames)
+        self.init_last = self.frames[-1].index
         return True
 
     def guess(self, index: int) -> torch.Tensor:
@@ -150,9 +153,10 @@ class FrontEnd:
             if self.relocalizing:
                 typical = statistics.median(self.residuals) if self.residuals else math.inf
                 limit = RELOC_RESIDUAL * typical
-                self.last_result = self.tracker.relocalize(field, local, keyframes, starts, limit)
+                refs = self._references(keyframes)
+                self.last_result = self.tracker.relocalize(field, local, refs, starts, limit)
             else:
-                self.last_result = self.tracker.track(field, local, keyframes)
+                self.last_result = self.tracker.track(field, local, self._references(keyframes))
         except TrackingLost as error:
             self.frames.pop()
             self.lost.append((index, timestamp))
@@ -183,6 +187,21 @@ class FrontEnd:
         self.pending.append(state)
         release_images(self.frames, self.cfg.kept_images)
         return state
+
+    def _references(self, keyframes: list[FrameState]) -> list[FrameState]:
+        """The keyframes a frame is tracked against, and, while frame 0 is the only one
+        (`tracker.init_reference`), the newest frame the initialization mapped: a camera that
+        moved far during the initialization has it beside its first tracked frames."""
+        newest = self.frames[-2] if len(self.frames) > 1 else None  # before the new frame
+        if (
+            not self.cfg.tracker.init_reference
+            or len(keyframes) != 1
+            or newest is None
+            or newest.keyframe
+            or newest.index != self.init_last
+        ):
+            return keyframes
+        return [*keyframes, newest]
 
     def _starts(
         self, index: int, guess: torch.Tensor, keyframes: list[FrameState]

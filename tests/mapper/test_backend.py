@@ -70,16 +70,3 @@ def test_a_global_refinement_round_moves_keyframes_and_the_frames_anchored_to_th
     assert torch.equal(frames[0].T_wc, before[0])
     assert not torch.equal(frames[2].T_wc, before[2])
     assert torch.allclose(frames[3].T_wc, pose.compose(frames[2].T_wc, rel), atol=1e-5)
-
-
-@pytest.mark.parametrize(("step", "expected"), [(0.0, [0]), (0.01, [0]), (0.1, [0, 12])])
-def test_the_initialization_ends_on_a_keyframe_where_the_camera_moved_far(step, expected):
-    cfg = apply_overrides(PRESETS["tiny"], {"mapper.prior_iters": "100"})
-    back = BackEnd(cfg, CAM, torch.device("cpu"), torch.Generator().manual_seed(0))
-    frames = [FrameState(i, i / 30, None, moved(step * i)) for i in range(13)]
-    frames[0].keyframe = True
-    # The map: the plane at the gauge depth (2), so a 0.1 step moves the image 2.5 px: 30 px
-    # (and half of frame 0's grid points out of view) by frame 12; a 0.01 step 3 px.
-    back.mapper.fit_prior(frames[0])
-    back._initial_keyframes(frames)
-    assert [f.index for f in frames if f.keyframe] == expected

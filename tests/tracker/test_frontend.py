@@ -1,6 +1,8 @@
 """The tracker's half of the pipeline without a map: collecting, batching, motion guesses,
 and the mapper's refined poses coming back."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 from walls import CAM
@@ -92,3 +94,30 @@ def test_refined_poses_move_the_later_frames_with_them():
     assert f.frames[1].keyframe and not f.frames[2].keyframe
     xs = [float(s.T_wc[0, 3]) for s in f.frames]
     assert xs == pytest.approx([0.0, 0.15, 0.25, 0.35], abs=1e-6)
+
+
+def test_the_first_frames_are_tracked_against_the_initialization_s_newest_frame_too():
+    """While frame 0 is the only keyframe, the newest frame the initialization mapped is a
+    reference as well; a keyframe of the tracker's own ends it (`tracker.init_reference`)."""
+    f = front()
+    rgb = torch.zeros(CAM.height, CAM.width, 3)
+    n = f.cfg.mapper.init_frames
+    for i in range(n):
+        f.collect(i, i / 30, rgb)
+    f.take_batch()
+    f.frames[0].keyframe = True
+    f.frames.append(FrameState(n, n / 30, rgb, torch.eye(4)))  # the frame being tracked
+    assert [k.index for k in f._references(f.keyframes)] == [0, n - 1]
+    f.frames[-1].keyframe = True  # it became a keyframe: tracked from here on as usual
+    f.frames.append(FrameState(n + 1, (n + 1) / 30, rgb, torch.eye(4)))
+    assert [k.index for k in f._references(f.keyframes)] == [0, n]
+    cfg = f.cfg
+    plain = FrontEnd(
+        replace(cfg, tracker=replace(cfg.tracker, init_reference=False)),
+        CAM,
+        torch.Generator().manual_seed(0),
+    )
+    plain.frames = list(f.frames[: n + 1])
+    plain.frames[n].keyframe = False
+    plain.init_last = n - 1
+    assert [k.index for k in plain._references(plain.keyframes)] == [0]
