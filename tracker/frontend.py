@@ -149,14 +149,14 @@ class FrontEnd:
         starts = self._starts(index, state.T_wc, keyframes) if self.relocalizing else []
         self.frames.append(state)
         local = self.frames[-self.cfg.tracker.local_frames :]
+        refs = self._references(keyframes)
         try:
             if self.relocalizing:
                 typical = statistics.median(self.residuals) if self.residuals else math.inf
                 limit = RELOC_RESIDUAL * typical
-                refs = self._references(keyframes)
                 self.last_result = self.tracker.relocalize(field, local, refs, starts, limit)
             else:
-                self.last_result = self.tracker.track(field, local, self._references(keyframes))
+                self.last_result = self.tracker.track(field, local, refs)
         except TrackingLost as error:
             self.frames.pop()
             self.lost.append((index, timestamp))
