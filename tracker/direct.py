@@ -40,7 +40,7 @@ from dimslam.common.geometry import pose
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.render import FieldFn, RenderConfig, render_pixels
 from dimslam.common.optim import losses
-from dimslam.common.optim.window import FrameState, TrackingLost, WindowStats, keyframe_due
+from dimslam.common.optim.window import FrameState, TrackingLost, WindowStats
 from dimslam.tracker.photometric import (
     LevelProblem,
     grey,
@@ -419,14 +419,22 @@ class DirectTracker:
         the frame, and the share of those the keyframe sees that the frame still sees."""
         if self.last_points is None:
             return False
-        return keyframe_due(
-            self.camera,
-            self.last_points,
-            last_keyframe.T_wc,
-            frame.T_wc,
-            self.cfg.keyframe_overlap,
-            self.cfg.keyframe_flow_px,
-        )
+        cam, points = self.camera, self.last_points
+
+        def view(T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            uv, z = cam.project(pose.transform_points(pose.invert(T_wc), points))
+            return uv, (z > 0) & cam.inside(uv)
+
+        uv_k, in_k = view(last_keyframe.T_wc)
+        uv_f, in_f = view(frame.T_wc)
+        if not bool(in_k.any()):
+            return True
+        overlap = float(in_f[in_k].float().mean())
+        if overlap < self.cfg.keyframe_overlap:
+            return True
+        both = in_k & in_f
+        flow = (uv_f[both] - uv_k[both]).norm(dim=-1).mean()
+        return float(flow) > self.cfg.keyframe_flow_px
 
 
 @dataclass

@@ -268,34 +268,6 @@ def project_into(
     return uv, warp.uv[:, :, 0], warp.valid[:, :, 0]
 
 
-def keyframe_due(
-    camera: Camera,
-    points_w: torch.Tensor,
-    T_keyframe: torch.Tensor,
-    T_frame: torch.Tensor,
-    min_overlap: float,
-    max_flow_px: float,
-) -> bool:
-    """Whether a frame at `T_frame` should become a keyframe after the one at `T_keyframe`
-    (camera-to-world): the frame sees less than `min_overlap` of the world points `(N, 3)`
-    the keyframe sees, or those both see moved more than `max_flow_px` on average between
-    the two images. A keyframe that sees none of the points calls for a new one."""
-
-    def view(T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        uv, z = camera.project(pose.transform_points(pose.invert(T_wc), points_w))
-        return uv, (z > 0) & camera.inside(uv)
-
-    uv_k, in_k = view(T_keyframe)
-    uv_f, in_f = view(T_frame)
-    if not bool(in_k.any()):
-        return True
-    if float(in_f[in_k].float().mean()) < min_overlap:
-        return True
-    both = in_k & in_f
-    flow = (uv_f[both] - uv_k[both]).norm(dim=-1).mean()
-    return float(flow) > max_flow_px
-
-
 def overlapping_keyframes(
     field_fn: FieldFn,
     frame: FrameState,
