@@ -404,11 +404,15 @@ class DirectTracker:
         stats = solved.stats
         return TrackResult(frame.index, frame.T_wc, stats, (*stats.references, frame.index))
 
+    def _view(self, p_w: torch.Tensor, T_cw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pixels of world points `(N, 3)` in camera `T_cw`, and which of them it sees."""
+        uv, z = self.camera.project(pose.transform_points(T_cw, p_w))
+        return uv, (z > 0) & self.camera.inside(uv)
+
     def _flow(self, p_w: torch.Tensor, T_a: torch.Tensor, T_b: torch.Tensor) -> float:
         """Mean displacement (pixels) of the points in view between cameras `T_a`, `T_b` (cw)."""
-        uv_a, z_a = self.camera.project(pose.transform_points(T_a, p_w))
-        uv_b, z_b = self.camera.project(pose.transform_points(T_b, p_w))
-        both = (z_a > 0) & (z_b > 0) & self.camera.inside(uv_a) & self.camera.inside(uv_b)
+        (uv_a, in_a), (uv_b, in_b) = self._view(p_w, T_a), self._view(p_w, T_b)
+        both = in_a & in_b
         return float((uv_a[both] - uv_b[both]).norm(dim=-1).mean()) if both.any() else math.inf
 
     # -- keyframes ----------------------------------------------------------------------------
@@ -419,18 +423,11 @@ class DirectTracker:
         the frame, and the share of those the keyframe sees that the frame still sees."""
         if self.last_points is None:
             return False
-        cam, points = self.camera, self.last_points
-
-        def view(T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            uv, z = cam.project(pose.transform_points(pose.invert(T_wc), points))
-            return uv, (z > 0) & cam.inside(uv)
-
-        uv_k, in_k = view(last_keyframe.T_wc)
-        uv_f, in_f = view(frame.T_wc)
+        uv_k, in_k = self._view(self.last_points, pose.invert(last_keyframe.T_wc))
+        uv_f, in_f = self._view(self.last_points, pose.invert(frame.T_wc))
         if not bool(in_k.any()):
             return True
-        overlap = float(in_f[in_k].float().mean())
-        if overlap < self.cfg.keyframe_overlap:
+        if float(in_f[in_k].float().mean()) < self.cfg.keyframe_overlap:
             return True
         both = in_k & in_f
         flow = (uv_f[both] - uv_k[both]).norm(dim=-1).mean()
