@@ -8,7 +8,8 @@ Each half is checked against ground truth before blaming the whole:
     python benchmarks/diagnose.py mapper SEQ       # map learned by the warping loss from GT poses
     python benchmarks/diagnose.py init SEQ         # initialization: poses and depth vs GT
     python benchmarks/diagnose.py run SEQ          # the whole system, error of every new frame
-                                                   # (--depth-every N: and the map's scale)
+                                                   # (--depth-every N: and the map's scale;
+                                                   # --gt-poses: frames at their true poses)
     python benchmarks/diagnose.py keyframes SEQ    # after the run, each keyframe's depth scale:
                                                    # the map's and its plane sweep's
     python benchmarks/diagnose.py mesh SEQ --out D # after the run, the mesh as the mapper makes
@@ -24,6 +25,7 @@ command says so (the GT poses of `map-oracle` and `mapper`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import math
 import time
@@ -310,9 +312,21 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
     med = float(np.median(ratio))
     within = float(np.mean(np.abs(ratio / med - 1) < 0.05))
     p10, p90 = np.percentile(ratio, [10, 90])
+    # The part of the view the map puts much nearer than the rest (a newly seen far wall):
+    # its depth as rendered, and where it would be at the view's median scale.
+    rendered = d.numpy()[gt > 0]
+    low = ratio < 0.8 * med
+    nearer = ""
+    if low.any():
+        expected = gt[gt > 0][low] * med / scale
+        nearer = (
+            f"; {100 * low.mean():.0f}% below 0.8 of it, rendered at "
+            f"{np.median(rendered[low]):.2f} map units where {np.median(expected):.2f} "
+            "at that scale"
+        )
     return (
         f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%; "
-        f"10th-90th percentile {p10:.2f}-{p90:.2f})"
+        f"10th-90th percentile {p10:.2f}-{p90:.2f}{nearer})"
     )
 
 
@@ -346,6 +360,8 @@ def cmd_run(args) -> None:
         if alignment is None:
             alignment = m.alignment
             print(f"initialized on {n} frames: ATE {100 * m.ate_rmse_m:.2f} cm")
+            if args.gt_poses:
+                _track_at_ground_truth(slam, frames, alignment.inverse())
             continue
         # The newest frame as tracked: the trajectory holds only the frames mapped so far.
         newest = slam.frames[-1].T_wc.detach().cpu().double().numpy()
@@ -360,6 +376,25 @@ def cmd_run(args) -> None:
             f"loss {slam.last_loss:.4f} {scale}",
             flush=True,
         )
+
+
+def _track_at_ground_truth(slam: Slam, frames, to_map) -> None:
+    """From now on every tracked frame gets its true pose (`to_map`: ground truth into the
+    map's frame and scale) and mapping rounds move no pose; the tracker still decides
+    keyframes and losses. The map is then learned from true poses only (after the
+    initialization's): what is left of its error is the mapper's."""
+    mapper = slam.back.mapper
+    mapper.cfg = dataclasses.replace(mapper.cfg, pose_lr=0.0)
+    track = slam.front.track
+
+    def tracked(field, index, timestamp, rgb):
+        state = track(field, index, timestamp, rgb)
+        if state is not None:
+            T = to_map.apply_poses(frames[index].T_wc[None].astype(np.float64))[0]
+            state.T_wc = torch.from_numpy(T).to(state.T_wc)
+        return state
+
+    slam.front.track = tracked
 
 
 def _ratio(depth: np.ndarray, gt: np.ndarray, scale: float) -> float:
@@ -468,6 +503,12 @@ def main() -> None:
         type=int,
         default=0,
         help="run: every N frames, the map's depth scale at the newest frame (0: never)",
+    )
+    parser.add_argument(
+        "--gt-poses",
+        action="store_true",
+        help="run: after the initialization, frames take their true poses and mapping rounds "
+        "move none (the map learned from true poses: the mapper's own error)",
     )
     parser.add_argument("--out", type=Path, help="mesh: folder for the meshes and trajectory")
     parser.add_argument("--until", type=int, help="map-oracle: track only frames before this")
