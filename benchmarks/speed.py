@@ -20,7 +20,9 @@ keyframes so that keyframes join the windows, and each `Mapper.map` call (at mos
 iterations) is timed and divided by the iterations it ran; medians over `--repeats`;
 `map_samples_per_s` counts the ray samples evaluated with gradients (forward, backward and
 optimizer step), `map_speedup` is the sparse map's over the dense one's, `map_mb` the stored
-grid cells and decoder after those rounds. The
+grid cells and decoder after those rounds; `field_ms` and `field_step_ms` (`_dense`) time
+the map alone on one iteration's samples (forward + backward, then the optimizer step), so
+that the rest of an iteration is the window objective's. The
 preset's own initialization time is estimated from the per-iteration times. Full run:
 `Slam.add` over `--frames` frames with the preset as it is except for the cheap initialization
 (`--full-init` keeps the preset's: 600 iterations of the cpu preset take minutes on a CPU);
@@ -53,7 +55,8 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.synth import FPS, SynthScene, default_camera
-from dimslam.common.optim.window import FrameState, TrackingLost
+from dimslam.common.map.field import make_field
+from dimslam.common.optim.window import FrameState, TrackingLost, adam
 from dimslam.common.options import apply_overrides
 from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import INIT_START, MapperConfig
@@ -282,6 +285,47 @@ def samples_per_iteration(cfg: SlamConfig) -> int:
     return rays * (r.n_stratified + r.n_importance * r.importance_rounds)
 
 
+FIELD_CUBE = 4.0
+"""Edge of the cube (map units, about the first camera) the field timing's points fill."""
+
+
+def time_field(cfg: SlamConfig, grids: str, device: torch.device, repeats: int) -> dict:
+    """The map alone, outside any window: forward and backward of one mapping iteration's
+    samples (uniform in a cube, every cell of which a sparse map stores), then the optimizer
+    step (medians, milliseconds). What a mapping iteration costs beyond these two is the
+    window objective's: ray sampling, patch warps into the window's frames, losses."""
+    field = make_field(replace(cfg.map, grids=grids), device)
+    generator = torch.Generator(device).manual_seed(0)
+
+    def cube(count: int) -> torch.Tensor:
+        u = torch.rand(count, 3, generator=generator, device=device)
+        return (u - 0.5) * FIELD_CUBE
+
+    # Every cell of the cube: a lattice at half the finest voxel size, a slab at a time.
+    axis = torch.arange(-FIELD_CUBE / 2, FIELD_CUBE / 2, min(cfg.map.voxel_sizes) / 2)
+    for x in axis.to(device):
+        yz = torch.cartesian_prod(axis, axis).to(device)
+        field.allocate(torch.cat([torch.full_like(yz[:, :1], float(x)), yz], dim=-1))
+    groups = [{"params": field.grid_parameters()}, {"params": field.decoder_parameters()}]
+    optimizer = field.follow(adam(groups))
+    forward, step = [], []
+    for i in range(repeats + 2):  # the first two pay one-off costs
+        points = cube(samples_per_iteration(cfg))
+        _sync(device)
+        start = time.perf_counter()
+        out = field(points)
+        (out.occupancy.sum() + out.rgb.sum()).backward()
+        _sync(device)
+        middle = time.perf_counter()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        _sync(device)
+        if i >= 2:
+            forward.append(middle - start)
+            step.append(time.perf_counter() - middle)
+    return {"field_ms": _median_ms(forward), "field_step_ms": _median_ms(step)}
+
+
 def _ratio(a: float | None, b: float | None) -> float | None:
     return a / b if a and b else None
 
@@ -322,6 +366,8 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
         steps.update({k + suffix: v for k, v in figures.items() if k.startswith("map_")})
         if grids == cfg.map.grids:
             steps.update({k: v for k, v in figures.items() if not k.startswith("map_")})
+        for key, value in time_field(cfg, grids, device, args.repeats).items():
+            steps[key + suffix] = value
         samples = samples_per_iteration(cfg)
         if figures["map_ms_per_iter"]:
             steps["map_samples_per_s" + suffix] = samples / figures["map_ms_per_iter"] * 1e3
@@ -388,9 +434,10 @@ def table(results: list[dict]) -> str:
 
     rows = [
         "| preset | size | track ms/frame p50 / p95 | Adam p50 | speedup | init ms/it "
-        "| map ms/it sparse / dense | init s (est.) | run fps | fps after init "
+        "| map ms/it sparse / dense | map alone: ms fwd+bwd + step, sparse / dense "
+        "| init s (est.) | run fps | fps after init "
         "| map MB sparse / dense | peak RSS MB | lost |",
-        "|" + "---|" * 13,
+        "|" + "---|" * 14,
     ]
     for r in results:
         run = r["full_run"] or {}
@@ -404,6 +451,8 @@ def table(results: list[dict]) -> str:
             f"| {num(r['init_ms_per_iter'])} "
             f"| {num(r['map_ms_per_iter'])} / {num(r['map_ms_per_iter_dense'])} "
             f"({r['map_window']}) "
+            f"| {num(r['field_ms'])} + {num(r['field_step_ms'])} / "
+            f"{num(r['field_ms_dense'])} + {num(r['field_step_ms_dense'])} "
             f"| {num(r['init_seconds_estimate'])} | {num(run.get('fps'), '.2f')} "
             f"| {num(run.get('tracked_fps'), '.2f')} "
             f"| {r['map_mb']:.1f} / {r['map_mb_dense']:.1f} "
