@@ -230,6 +230,9 @@ class Mapper:
                 self.field, self.camera, uv, first.T_wc, self.render_cfg, self.generator
             )
             loss = (out.depth - self.cfg.gauge_depth).abs().mean()
+            if self.render_cfg.normalize_depth:
+                # A normalized depth is met by rays that barely stop: the plane must stop them.
+                loss = loss + (1 - out.opacity).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()

@@ -54,7 +54,8 @@ class RenderConfig:
         False,
         "Rendered depth is the mean depth of the ray's weights (their sum times depth divided "
         "by the ray's opacity; False: not divided, the paper's, which renders a ray that does "
-        "not quite stop nearer than where it stops and so shrinks the map).",
+        "not quite stop nearer than where it stops and so shrinks the map). On, the plane the "
+        "map starts from is also made to stop every ray (mapper.fit_prior).",
     )
     surface_band: float = option(
         0.15, "Surface samples cover the rendered depth +- this fraction of it."

@@ -1,9 +1,10 @@
 """Mapper choices that need no trained map: which poses a mapping round moves."""
 
 import torch
-from walls import small_mapper, textured_wall_image
+from walls import CAM, SMALL_MAP, small_mapper, textured_wall_image
 
 from dimslam.common.geometry import pose
+from dimslam.common.map.render import RenderConfig, render_pixels
 from dimslam.common.optim.window import FrameState
 from dimslam.mapper.mapper import Mapper, MapperConfig
 
@@ -67,3 +68,19 @@ def test_global_refinement_moves_keyframes_anywhere_on_the_path_but_frame_0():
         m.post_optimize(frames, iters=4, chunk=2, anchors=[frames[0], frames[3]], poses=poses_too)
         moved = [not torch.equal(f.T_wc, T) for f, T in zip(frames, poses, strict=True)]
         assert moved == [False] + [poses_too] * 4
+
+
+def test_the_initial_plane_stops_the_rays_when_depth_is_normalized():
+    """A normalized depth is met at the gauge by rays that barely stop; the plane the map
+    starts from must stop them (without the opacity term: 0.65 here)."""
+    torch.manual_seed(0)
+    render = RenderConfig(
+        n_stratified=16, n_importance=8, importance_rounds=1, far=6.0, normalize_depth=True
+    )
+    m = small_mapper(MapperConfig(prior_iters=60), SMALL_MAP, render)
+    m.fit_prior(FrameState(0, 0.0, None, torch.eye(4)))
+    uv = torch.rand(200, 2) * torch.tensor([CAM.width - 1.0, CAM.height - 1.0])
+    with torch.no_grad():
+        out = render_pixels(m.field, CAM, uv, torch.eye(4), render)
+    assert out.opacity.min() > 0.9
+    assert torch.allclose(out.depth.median(), torch.tensor(m.cfg.gauge_depth), atol=0.1)
