@@ -303,9 +303,9 @@ def time_field(cfg: SlamConfig, grids: str, device: torch.device, repeats: int) 
 
     # Every cell of the cube: a lattice at half the finest voxel size, a slab at a time.
     axis = torch.arange(-FIELD_CUBE / 2, FIELD_CUBE / 2, min(cfg.map.voxel_sizes) / 2)
-    for x in axis.to(device):
-        yz = torch.cartesian_prod(axis, axis).to(device)
-        field.allocate(torch.cat([torch.full_like(yz[:, :1], float(x)), yz], dim=-1))
+    yz = torch.cartesian_prod(axis, axis).to(device)
+    for x in axis.tolist():
+        field.allocate(torch.cat([torch.full_like(yz[:, :1], x), yz], dim=-1))
     groups = [{"params": field.grid_parameters()}, {"params": field.decoder_parameters()}]
     optimizer = field.follow(adam(groups))
     forward, step = [], []
