@@ -383,9 +383,9 @@ def _track_at_ground_truth(slam: Slam, frames, to_map) -> None:
     map's frame and scale) and mapping rounds move no pose; the tracker still decides
     keyframes and losses. The map is then learned from true poses only (after the
     initialization's): what is left of its error is the mapper's. It needs an
-    initialization whose alignment to the ground truth is well determined: where it is not,
-    the true poses do not fit the initial map and the tracker is lost from the first frame on
-    (room0: lost at frame 14, never relocalized; read the drift column first)."""
+    initialization whose alignment to the ground truth is well determined: on room0 the
+    true poses do not fit the initial map and the tracker is lost from frame 14 on, never
+    relocalized (read the drift column first)."""
     mapper = slam.back.mapper
     mapper.cfg = dataclasses.replace(mapper.cfg, pose_lr=0.0)
     track = slam.front.track
