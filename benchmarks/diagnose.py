@@ -307,18 +307,18 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
     """The map's scale at a frame: rendered over true depth (times the initialization's scale,
     so 1 means the scale the system started with), median and spread over the pixels."""
     d, _ = render_image(slam.back.mapper.field, camera, frame.T_wc, slam.cfg.render)
-    ratio = scale * d.numpy() / np.maximum(gt, 1e-6)
-    ratio = ratio[gt > 0]
+    known = gt > 0
+    rendered, true = d.numpy()[known], gt[known]
+    ratio = scale * rendered / true
     med = float(np.median(ratio))
     within = float(np.mean(np.abs(ratio / med - 1) < 0.05))
     p10, p90 = np.percentile(ratio, [10, 90])
     # The part of the view the map puts much nearer than the rest (a newly seen far wall):
     # its depth as rendered, and where it would be at the view's median scale.
-    rendered = d.numpy()[gt > 0]
     low = ratio < 0.8 * med
     nearer = ""
     if low.any():
-        expected = gt[gt > 0][low] * med / scale
+        expected = true[low] * med / scale
         nearer = (
             f"; {100 * low.mean():.0f}% below 0.8 of it, rendered at "
             f"{np.median(rendered[low]):.2f} map units where {np.median(expected):.2f} "
