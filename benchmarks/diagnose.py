@@ -305,7 +305,9 @@ def cmd_init(args) -> None:
 
 def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: float) -> str:
     """The map's scale at a frame: rendered over true depth (times the initialization's scale,
-    so 1 means the scale the system started with), median and spread over the pixels."""
+    so 1 means the scale the system started with), median and spread over the pixels, and
+    the median over the textured pixels (the strongest tenth of the image gradient, where the
+    tracker draws its points: a textureless far wall mapped too near does not move it)."""
     d, _ = render_image(slam.back.mapper.field, camera, frame.T_wc, slam.cfg.render)
     known = gt > 0
     rendered, true = d.numpy()[known], gt[known]
@@ -324,9 +326,14 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
             f"{np.median(rendered[low]):.2f} map units where {np.median(expected):.2f} "
             "at that scale"
         )
+    # The pixels the tracker draws from: the strongest tenth of the image gradient.
+    grey = cv2.cvtColor((frame.rgb.cpu().numpy() * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    gradient = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+    strong = gradient[known] >= np.percentile(gradient[known], 90)
     return (
         f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%; "
-        f"10th-90th percentile {p10:.2f}-{p90:.2f}{nearer})"
+        f"10th-90th percentile {p10:.2f}-{p90:.2f}{nearer}); "
+        f"textured pixels {np.median(ratio[strong]):.3f}"
     )
 
 

@@ -29,4 +29,8 @@ def test_run_at_true_poses_puts_every_tracked_frame_on_its_ground_truth(
     # The newest frame's error after the initialization's alignment: none at true poses.
     drifts = [float(ln.split("drift")[1].split("cm")[0]) for ln in tracked]
     assert max(drifts) < 0.01, tracked
-    assert any("map scale" in ln for ln in tracked), tracked
+    scaled = [ln for ln in tracked if "map scale" in ln]
+    assert scaled, tracked
+    # The tracker's pixels on the built-in scene at true poses: the scale it started with.
+    textured = [float(ln.split("textured pixels")[1]) for ln in scaled]
+    assert all(0.8 < s < 1.25 for s in textured), scaled
