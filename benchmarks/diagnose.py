@@ -15,6 +15,10 @@ Each half is checked against ground truth before blaming the whole:
     python benchmarks/diagnose.py mesh SEQ --out D # after the run, the mesh as the mapper makes
                                                    # it and from the true depth at the estimated
                                                    # keyframe poses: what the poses allow
+    python benchmarks/diagnose.py basin SEQ        # run at true poses; the warping cost of the
+                                                   # pixels mapped too near, at their true depth
+                                                   # times 0.4-1.5; then --rounds more mapping
+                                                   # rounds (--then: their settings)
 
 SEQ is a TUM-layout sequence with `depth.txt` (exact depth: `dimslam synth` output or
 ../shared/data/room0). Settings: `--preset` plus `section.field=value` overrides. Ground truth
@@ -45,7 +49,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.render import render_image, render_pixels
 from dimslam.common.optim import losses
-from dimslam.common.optim.objective import window_objective
+from dimslam.common.optim.objective import patch_colors, window_objective
 from dimslam.common.optim.window import (
     FrameState,
     TrackingLost,
@@ -326,10 +330,7 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
             f"{np.median(rendered[low]):.2f} map units where {np.median(expected):.2f} "
             "at that scale"
         )
-    # The pixels the tracker draws from: the strongest tenth of the image gradient.
-    grey = cv2.cvtColor((frame.rgb.cpu().numpy() * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-    gradient = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
-    strong = gradient[known] >= np.percentile(gradient[known], 90)
+    strong = _textured(frame.rgb, known)[known]
     return (
         f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%; "
         f"10th-90th percentile {p10:.2f}-{p90:.2f}{nearer}); "
@@ -405,6 +406,133 @@ def _track_at_ground_truth(slam: Slam, frames, to_map) -> None:
         return state
 
     slam.front.track = tracked
+
+
+BASIN_SCALES = (0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.5)
+"""Multiples of the true depth at which `basin` evaluates the warping cost."""
+
+
+def cmd_basin(args) -> None:
+    """Is a surface mapped too near from true poses a minimum of the objective, or one the
+    mapper has not reached? `run --gt-poses` over `--frames`; then, at the newest frame, the
+    textured pixels (the tracker's strongest tenth of the gradient) whose rendered depth is
+    below 0.8 of the view's median scale, and for comparison those within 10 % of it: the
+    warping cost of their patches (sizes of the preset, against the last mapping round's
+    frames and the six keyframes before the newest) with the depth set to the true depth
+    times each of `BASIN_SCALES`, and at the rendered depth. Then `--rounds` more mapping
+    rounds of the newest frames at their true poses, with `--then` overrides, and the map's
+    scale over the view, its textured pixels and those farther than 0.7 of the view's
+    farthest true depth after every second round."""
+    cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    alignment = None
+    for n in _feed(slam, frames):
+        if alignment is None:
+            alignment = evaluate_trajectory(slam.trajectory(), _ground_truth(frames[:n])).alignment
+            _track_at_ground_truth(slam, frames, alignment.inverse())
+    if alignment is None or n < len(frames):
+        raise SystemExit("basin: the run stopped before its last frame")
+    back, mapper = slam.back, slam.back.mapper
+    recent = back.frames[-cfg.mapper.every :]
+    newest = recent[-1]
+    true = depths[newest.index] / alignment.s  # map units at the initialization's scale
+    known = true > 0
+    H, W = true.shape
+    margin = max(cfg.loss.patch_sizes) // 2 + 1
+    inside = np.zeros_like(known)
+    inside[margin : H - margin, margin : W - margin] = True
+    strong = _textured(torch.from_numpy(frames[newest.index].rgb).float() / 255, known)
+
+    def ratios() -> np.ndarray:
+        with torch.no_grad():
+            d, _ = render_image(mapper.field, camera, newest.T_wc, cfg.render)
+        return np.where(known, d.numpy() / np.maximum(true, 1e-9), np.nan)
+
+    ratio = ratios()
+    med = float(np.nanmedian(ratio))
+    sources = [f for f in back.keyframes if f.index < newest.index][-6:]
+    window = sorted({id(f): f for f in [*sources, *recent]}.values(), key=lambda f: f.index)
+    window.remove(newest)
+    images = torch.stack(
+        [torch.from_numpy(frames[f.index].rgb).float() / 255 for f in [newest, *window]]
+    )
+    poses = torch.stack([newest.T_wc, *[f.T_wc for f in window]])
+    print(
+        f"frame {newest.index}: view at {med:.3f} of its true depth; patches warped into "
+        f"frames {[f.index for f in window]}"
+    )
+    groups = {
+        "mapped too near (< 0.8 of the view's scale)": strong & inside & (ratio < 0.8 * med),
+        "at the view's scale (within 10 %)": strong & inside & (np.abs(ratio / med - 1) < 0.1),
+    }
+    for name, mask in groups.items():
+        v, u = np.nonzero(mask)
+        if u.size == 0:
+            print(f"  {name}: no pixel")
+            continue
+        pick = np.random.default_rng(0).choice(u.size, min(400, u.size), replace=False)
+        v, u = v[pick], u[pick]
+        uv = torch.from_numpy(np.stack([u, v], -1)).float()
+        depth = torch.from_numpy(true[v, u]).float()
+        at = torch.from_numpy(ratio[v, u]).float()
+        row = "  ".join(
+            f"x{x:g} {_warp_cost(images, poses, camera, uv, depth * x, cfg.loss):.4f}"
+            for x in BASIN_SCALES
+        )
+        print(f"  {name}: {int(mask.sum())} px, rendered at {float(at.median()):.3f} of true")
+        print(f"    cost at the true depth times {row}")
+        rendered = _warp_cost(images, poses, camera, uv, depth * at, cfg.loss)
+        print(f"    cost at the rendered depth {rendered:.4f}")
+
+    if args.rounds <= 0:
+        return
+    more = apply_overrides(cfg, dict(o.split("=", 1) for o in args.then))
+    mapper.cfg = dataclasses.replace(more.mapper, pose_lr=0.0)
+    mapper.loss_cfg, mapper.render_cfg = more.loss, more.render
+    far = known & (true > 0.7 * true.max())
+
+    def scales(when: str) -> None:
+        r = ratios()
+        print(
+            f"  {when}: view {np.nanmedian(r):.3f}, textured {np.nanmedian(r[strong]):.3f}, "
+            f"far {np.nanmedian(r[far]):.3f} of the true depth",
+            flush=True,
+        )
+
+    print(
+        f"{args.rounds} more mapping rounds of frames {[f.index for f in recent]} "
+        f"at their true poses{' with ' + ' '.join(args.then) if args.then else ''}:"
+    )
+    for f in recent:  # the tracker released the images of the frames no window holds
+        if f.rgb is None:
+            f.rgb = torch.from_numpy(frames[f.index].rgb).float() / 255
+    scales("before")
+    for i in range(1, args.rounds + 1):
+        mapper.map(recent, back.keyframes)
+        if i % 2 == 0 or i == args.rounds:
+            scales(f"after {i}")
+
+
+def _warp_cost(images, poses, camera, uv: torch.Tensor, depth: torch.Tensor, loss_cfg) -> float:
+    """The warping loss of frame 0's patches at pixels `uv` and depths `depth` against the
+    other frames of `images` at `poses`, every pixel counted wherever its patch lands."""
+    offsets = losses.patch_offsets(max(loss_cfg.patch_sizes))
+    ref = patch_colors(images, torch.zeros(len(uv), dtype=torch.long), uv, offsets)
+    warp = losses.warp_patches(uv, depth, poses[0], poses, camera, offsets)
+    valid = warp.valid.clone()
+    valid[0] = False  # not against itself
+    everywhere = torch.ones(len(uv), dtype=torch.bool)
+    warped = losses.sample_images(images, warp.uv)
+    return float(losses.warping_loss(ref, warped, valid, everywhere, loss_cfg.patch_sizes).value)
+
+
+def _textured(rgb: torch.Tensor, known: np.ndarray) -> np.ndarray:
+    """The strongest tenth of the image gradient among the `known` pixels (where the tracker
+    draws its points)."""
+    grey = cv2.cvtColor((rgb.cpu().numpy() * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    gradient = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+    return known & (gradient >= np.percentile(gradient[known], 90))
 
 
 def _ratio(depth: np.ndarray, gt: np.ndarray, scale: float) -> float:
@@ -498,7 +626,17 @@ def main() -> None:
     )
     parser.add_argument(
         "command",
-        choices=["map-oracle", "single", "landscape", "mapper", "init", "run", "keyframes", "mesh"],
+        choices=[
+            "map-oracle",
+            "single",
+            "landscape",
+            "mapper",
+            "init",
+            "run",
+            "keyframes",
+            "mesh",
+            "basin",
+        ],  # fmt: skip
     )
     parser.add_argument("seq", help="TUM-layout sequence with depth.txt")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
@@ -519,6 +657,15 @@ def main() -> None:
         action="store_true",
         help="run: after the initialization, frames take their true poses and mapping rounds "
         "move none (the map learned from true poses: the mapper's own error)",
+    )
+    parser.add_argument("--rounds", type=int, default=0, help="basin: more mapping rounds")
+    parser.add_argument(
+        "--then",
+        nargs="*",
+        action="extend",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="basin: settings of the extra mapping rounds only",
     )
     parser.add_argument("--out", type=Path, help="mesh: folder for the meshes and trajectory")
     parser.add_argument("--until", type=int, help="map-oracle: track only frames before this")
@@ -543,6 +690,7 @@ def main() -> None:
         "run": cmd_run,
         "keyframes": cmd_keyframes,
         "mesh": cmd_mesh,
+        "basin": cmd_basin,
     }
     commands[args.command](args)
 

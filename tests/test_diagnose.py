@@ -34,3 +34,23 @@ def test_run_at_true_poses_puts_every_tracked_frame_on_its_ground_truth(
     # The tracker's pixels on the built-in scene at true poses: the scale it started with.
     textured = [float(ln.split("textured pixels")[1]) for ln in scaled]
     assert all(0.8 < s < 1.25 for s in textured), scaled
+
+
+def test_basin_finds_the_warping_cost_lowest_near_the_true_depth(
+    diagnose, tmp_path, monkeypatch, capsys
+):
+    scene = tmp_path / "scene"
+    write_sequence(scene, frames=18, width=160, height=120, seed=0)
+    argv = ["diagnose.py", "basin", str(scene), "--preset", "tiny", "--frames", "18"]
+    monkeypatch.setattr("sys.argv", [*argv, "--rounds", "2", "--then", "mapper.grid_lr=2e-3"])
+    diagnose.main()
+    out = capsys.readouterr().out
+    rows = [ln for ln in out.splitlines() if "cost at the true depth times" in ln]
+    assert rows, out
+    for row in rows:
+        words = row.split()[6:]  # "x0.4 0.1338 x0.5 ..."
+        costs = {float(x[1:]): float(c) for x, c in zip(words[::2], words[1::2], strict=True)}
+        assert set(costs) == set(diagnose.BASIN_SCALES), row
+        # Patches warped at their true depth from true poses match best (the scene is exact).
+        assert 0.9 <= min(costs, key=costs.get) <= 1.1, row
+    assert "mapping rounds of frames" in out and "after 2:" in out, out
