@@ -512,6 +512,14 @@ def cmd_basin(args) -> None:
         mapper.map(recent, back.keyframes)
         if i % 2 == 0 or i == args.rounds:
             scales(f"after {i}")
+    for f in recent:  # the plane sweeps the rounds followed (`mapper.stereo_weight`)
+        sweep = mapper.sweeps.get(f.index)
+        if sweep is not None:
+            true_f = depths[f.index] / alignment.s
+            print(
+                f"  keyframe {f.index}'s plane sweep: {100 * sweep.kept:.0f} % of its pixels "
+                f"kept, at {_ratio(sweep.depth.numpy(), true_f, 1.0):.3f} of the true depth"
+            )
 
 
 def _warp_cost(images, poses, camera, uv: torch.Tensor, depth: torch.Tensor, loss_cfg) -> float:
