@@ -386,6 +386,24 @@ def cmd_run(args) -> None:
         )
 
 
+def _run_whole(args, at_truth: bool):
+    """The whole system over `--frames` of the sequence. Returns its settings, camera, frames,
+    true depths, the `Slam`, the Sim(3) of its initialization onto the ground truth (None
+    when it never initialized) and how many frames it took; `at_truth`: every frame after
+    the initialization at its true pose (`_track_at_ground_truth`)."""
+    cfg, camera, frames = load(args)
+    depths = gt_depths(Path(args.seq), frames, camera)
+    slam = Slam(cfg, camera, torch.device("cpu"))
+    alignment, fed = None, 0
+    for fed in _feed(slam, frames):
+        if alignment is None:
+            gt = _ground_truth(frames[:fed])
+            alignment = evaluate_trajectory(slam.trajectory(), gt).alignment
+            if at_truth:
+                _track_at_ground_truth(slam, frames, alignment.inverse())
+    return cfg, camera, frames, depths, slam, alignment, fed
+
+
 def _track_at_ground_truth(slam: Slam, frames, to_map) -> None:
     """From now on every tracked frame gets its true pose (`to_map`: ground truth into the
     map's frame and scale) and mapping rounds move no pose; the tracker still decides
@@ -423,15 +441,8 @@ def cmd_basin(args) -> None:
     rounds of the newest frames at their true poses, with `--then` overrides, and the map's
     scale over the view, its textured pixels and those farther than 0.7 of the view's
     farthest true depth after every second round."""
-    cfg, camera, frames = load(args)
-    depths = gt_depths(Path(args.seq), frames, camera)
-    slam = Slam(cfg, camera, torch.device("cpu"))
-    alignment = None
-    for n in _feed(slam, frames):
-        if alignment is None:
-            alignment = evaluate_trajectory(slam.trajectory(), _ground_truth(frames[:n])).alignment
-            _track_at_ground_truth(slam, frames, alignment.inverse())
-    if alignment is None or n < len(frames):
+    cfg, camera, frames, depths, slam, alignment, fed = _run_whole(args, at_truth=True)
+    if alignment is None or fed < len(frames):
         raise SystemExit("basin: the run stopped before its last frame")
     back, mapper = slam.back, slam.back.mapper
     recent = back.frames[-cfg.mapper.every :]
@@ -556,13 +567,7 @@ def cmd_keyframes(args) -> None:
     depth, times the initialization's alignment scale: 1 is the scale the system started
     with) of what the map renders at its final pose, and of its plane sweep (the mapper's
     multi-view depth, found when the keyframe was new, from the poses of then)."""
-    cfg, camera, frames = load(args)
-    depths = gt_depths(Path(args.seq), frames, camera)
-    slam = Slam(cfg, camera, torch.device("cpu"))
-    alignment = None
-    for n in _feed(slam, frames):
-        if alignment is None:
-            alignment = evaluate_trajectory(slam.trajectory(), _ground_truth(frames[:n])).alignment
+    cfg, camera, frames, depths, slam, alignment, _ = _run_whole(args, at_truth=False)
     if alignment is None:
         raise SystemExit("error: the system did not initialize")
     mapper = slam.back.mapper
