@@ -96,7 +96,7 @@ def relative_gt(frames, scale: float = 1.0) -> list[torch.Tensor]:
 
 def states_at(frames, poses) -> list[FrameState]:
     return [
-        FrameState(i, f.timestamp, torch.from_numpy(f.rgb).float() / 255, T.clone())
+        FrameState(i, f.timestamp, _image(f), T.clone())
         for i, (f, T) in enumerate(zip(frames, poses, strict=True))
     ]
 
@@ -128,7 +128,7 @@ def fit_supervised(args):
             print(f"fitted map from {cache}: {depth_error(slam, camera, poses[-1], depths[-1])}")
             return cfg, camera, frames, poses, slam
     opt = torch.optim.Adam([{"params": list(field.parameters()), "lr": 1e-2}])
-    rgb = torch.stack([torch.from_numpy(f.rgb).float() / 255 for f in frames])
+    rgb = torch.stack([_image(f) for f in frames])
     depth = torch.from_numpy(np.stack(depths))
     P = torch.stack(poses)
     for _ in range(args.fit_iters):
@@ -157,7 +157,7 @@ def cmd_map_oracle(args) -> None:
     front.map_changed(field, 1)
     seconds = []
     for i, f in enumerate(frames[2 : args.until], 2):
-        rgb = torch.from_numpy(f.rgb).float() / 255
+        rgb = _image(f)
         began = time.perf_counter()
         s = front.track(field, i, f.timestamp, rgb)
         seconds.append(time.perf_counter() - began)
@@ -217,7 +217,7 @@ def cmd_landscape(args) -> None:
     cfg, camera, frames, poses, slam = fit_supervised(args)
     k = args.frame
     ids = [k - 3, k - 2, k - 1]
-    images = torch.stack([torch.from_numpy(frames[i].rgb).float() / 255 for i in [*ids, k]])
+    images = torch.stack([_image(frames[i]) for i in [*ids, k]])
     uv = losses.high_gradient_pixels(images[-1], cfg.tracker.pixels, slam.generator, 5).float()
     frame = torch.full((uv.shape[0],), len(ids))
     for shift in (0.0, args.shift):
@@ -453,7 +453,7 @@ def cmd_basin(args) -> None:
     margin = max(cfg.loss.patch_sizes) // 2 + 1
     inside = np.zeros_like(known)
     inside[margin : H - margin, margin : W - margin] = True
-    strong = _textured(torch.from_numpy(frames[newest.index].rgb).float() / 255, known)
+    strong = _textured(_image(frames[newest.index]), known)
 
     def ratios() -> np.ndarray:
         with torch.no_grad():
@@ -465,9 +465,7 @@ def cmd_basin(args) -> None:
     sources = [f for f in back.keyframes if f.index < newest.index][-6:]
     window = sorted({id(f): f for f in [*sources, *recent]}.values(), key=lambda f: f.index)
     window.remove(newest)
-    images = torch.stack(
-        [torch.from_numpy(frames[f.index].rgb).float() / 255 for f in [newest, *window]]
-    )
+    images = torch.stack([_image(frames[f.index]) for f in [newest, *window]])
     poses = torch.stack([newest.T_wc, *[f.T_wc for f in window]])
     print(
         f"frame {newest.index}: view at {med:.3f} of its true depth; patches warped into "
@@ -517,7 +515,7 @@ def cmd_basin(args) -> None:
     )
     for f in recent:  # the tracker released the images of the frames no window holds
         if f.rgb is None:
-            f.rgb = torch.from_numpy(frames[f.index].rgb).float() / 255
+            f.rgb = _image(frames[f.index])
     scales("before")
     for i in range(1, args.rounds + 1):
         mapper.map(recent, back.keyframes)
@@ -544,6 +542,11 @@ def _warp_cost(images, poses, camera, uv: torch.Tensor, depth: torch.Tensor, los
     everywhere = torch.ones(len(uv), dtype=torch.bool)
     warped = losses.sample_images(images, warp.uv)
     return float(losses.warping_loss(ref, warped, valid, everywhere, loss_cfg.patch_sizes).value)
+
+
+def _image(frame) -> torch.Tensor:
+    """A dataset frame's colour image as the system holds it: `(H, W, 3)` float in [0, 1]."""
+    return torch.from_numpy(frame.rgb).float() / 255
 
 
 def _textured(rgb: torch.Tensor, known: np.ndarray) -> np.ndarray:
@@ -633,24 +636,24 @@ def cmd_mesh(args) -> None:
         print(f"{name}:\n{format_metrics(metrics)}", flush=True)
 
 
+COMMANDS = {
+    "map-oracle": cmd_map_oracle,
+    "single": cmd_single,
+    "landscape": cmd_landscape,
+    "mapper": cmd_mapper,
+    "init": cmd_init,
+    "run": cmd_run,
+    "keyframes": cmd_keyframes,
+    "mesh": cmd_mesh,
+    "basin": cmd_basin,
+}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument(
-        "command",
-        choices=[
-            "map-oracle",
-            "single",
-            "landscape",
-            "mapper",
-            "init",
-            "run",
-            "keyframes",
-            "mesh",
-            "basin",
-        ],  # fmt: skip
-    )
+    parser.add_argument("command", choices=list(COMMANDS))
     parser.add_argument("seq", help="TUM-layout sequence with depth.txt")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
     parser.add_argument("--frames", type=int, default=40, help="frames to use (default: 40)")
@@ -694,18 +697,7 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     torch.manual_seed(0)
-    commands = {
-        "map-oracle": cmd_map_oracle,
-        "single": cmd_single,
-        "landscape": cmd_landscape,
-        "mapper": cmd_mapper,
-        "init": cmd_init,
-        "run": cmd_run,
-        "keyframes": cmd_keyframes,
-        "mesh": cmd_mesh,
-        "basin": cmd_basin,
-    }
-    commands[args.command](args)
+    COMMANDS[args.command](args)
 
 
 if __name__ == "__main__":
