@@ -524,10 +524,10 @@ def cmd_basin(args) -> None:
     for f in recent:  # the plane sweeps the rounds followed (`mapper.stereo_weight`)
         sweep = mapper.sweeps.get(f.index)
         if sweep is not None:
-            true_f = depths[f.index] / alignment.s
+            ratio = _ratio(sweep.depth.numpy(), depths[f.index], alignment.s)
             print(
                 f"  keyframe {f.index}'s plane sweep: {100 * sweep.kept:.0f} % of its pixels "
-                f"kept, at {_ratio(sweep.depth.numpy(), true_f, 1.0):.3f} of the true depth"
+                f"kept, at {ratio:.3f} of the true depth"
             )
 
 
