@@ -36,10 +36,9 @@ from dimslam.common.geometry import pose, sim3
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
-from dimslam.common.optim.window import FrameState, TrackingLost, release_images
+from dimslam.common.optim.window import FrameState, release_images
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
-from dimslam.tracker.tracker import Tracker
 
 if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s to load
     import trimesh
@@ -78,7 +77,6 @@ class BackEnd:
             else None
         )
         self.closed: list[Loop] = []
-        self.refiner = Tracker(cfg.tracker, cfg.loss, cfg.render, camera, generator)
 
     @property
     def field(self):
@@ -117,7 +115,6 @@ class BackEnd:
             window = self.frames
         else:
             window = self.frames[-self.cfg.mapper.every :]
-            self._refine_keyframes(window)
             result = self.mapper.map(window, self.keyframes)
         self._anchor(window)
         every = self.cfg.mapper.global_every
@@ -128,29 +125,6 @@ class BackEnd:
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
         return result
-
-    def _refine_keyframes(self, window: list[FrameState]) -> None:
-        """`mapper.refine_keyframes` steps of the tracking window objective on each keyframe
-        of `window`, against the frames before it (those that keep their images) and the
-        older keyframes; the frames after it move with it, so their motion stays as tracked."""
-        iters = self.cfg.mapper.refine_keyframes
-        if iters <= 0:
-            return
-        position = {id(f): k for k, f in enumerate(self.frames)}
-        for kf in [f for f in window if f.keyframe and f.rgb is not None]:
-            k = position[id(kf)]
-            local = [f for f in self.frames[:k] if f.rgb is not None]
-            local = [*local[-(self.cfg.tracker.local_frames - 1) :], kf]
-            older = [f for f in self.keyframes if f.index < kf.index]
-            before = kf.T_wc.clone()
-            try:
-                self.refiner.refine(self.field, local, older, iters)
-            except TrackingLost as error:
-                log.debug("keyframe %d keeps its tracked pose: %s", kf.index, error)
-                continue
-            correction = pose.compose(kf.T_wc, pose.invert(before))
-            for f in self.frames[k + 1 :]:
-                f.T_wc = pose.normalize(pose.compose(correction, f.T_wc))
 
     def _close_loops(self, window: list[FrameState]) -> None:
         """Describe the window's new keyframes and close the first loop one of them finds."""

@@ -93,12 +93,6 @@ class MapperConfig:
         True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
-    refine_keyframes: int = option(
-        0,
-        "Steps of the paper's tracking objective (Adam; the `tracker` window settings) that "
-        "refine each new keyframe's pose before its mapping round, against the frames before "
-        "it and the keyframes overlapping it; the frames after it follow (0: none).",
-    )
     init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
     init_grow_iters: int = option(
         40, "Initialization iterations after each frame joins (frames join one at a time)."

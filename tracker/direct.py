@@ -132,7 +132,6 @@ class DirectTracker:
         self.brightness: dict[int, tuple[float, float]] = {}
         self.version = 0
         self.last_points: torch.Tensor | None = None
-        self.previous: Reference | None = None  # the last frame tracked (`tracker.previous`)
 
     # -- references ---------------------------------------------------------------------------
 
@@ -241,9 +240,6 @@ class DirectTracker:
         refs, rendered = self.choose(field, keyframes, frame.T_wc)
         if not refs:
             raise TrackingLost(f"frame {frame.index}: no rendered keyframe overlaps its view")
-        before = local[-2] if len(local) > 1 else None
-        if self.previous is not None and before is not None and self.previous.keyframe is before:
-            refs = [*refs, self.previous]
         solved = self.solve(frame, refs, self.images(frame))
         solved.stats.rendered = rendered
         return self._accept(frame, solved)
@@ -369,8 +365,6 @@ class DirectTracker:
         finest = None
         for level in reversed(range(len(images))):
             finest = self._problem(images, refs, pts, level)
-            if self.cfg.motion_prior > 0:
-                finest.anchor = frame.T_wc.double().cpu().numpy()
             # A fair share of the iterations left; what a level leaves unused passes on.
             T_cw, ab, used, cost = finest.minimize(T_cw, ab, max(1, budget // (level + 1)))
             budget -= used
@@ -399,8 +393,7 @@ class DirectTracker:
             raise TrackingLost(
                 f"frame {frame.index}: residual {residual:.3f}, {inliers:.0%} inliers", T_wc
             )
-        fitted = check.valid & (check.r.abs() <= self.cfg.huber)
-        return _Solved(T_wc, ab, stats, refs, pts.p_w, fitted)
+        return _Solved(T_wc, ab, stats, refs, pts.p_w)
 
     def _accept(self, frame: FrameState, solved: _Solved) -> TrackResult:
         """Give the frame its solved pose; keep the brightness and points for the next."""
@@ -408,20 +401,8 @@ class DirectTracker:
         for k, r in enumerate(solved.refs):
             self.brightness[r.keyframe.index] = (float(solved.ab[k, 0]), float(solved.ab[k, 1]))
         self.last_points = solved.p_w
-        if self.cfg.previous:
-            self._keep_previous(frame, solved)
         stats = solved.stats
         return TrackResult(frame.index, frame.T_wc, stats, (*stats.references, frame.index))
-
-    def _keep_previous(self, frame: FrameState, solved: _Solved) -> None:
-        """The frame as the next one's reference: up to `ref_points` of the points its solve
-        fitted (within the Huber threshold), at the depth their keyframes gave them."""
-        if self.previous is not None:
-            self.brightness.pop(self.previous.keyframe.index, None)
-        p_w = solved.p_w[solved.fitted][: self.cfg.ref_points]
-        uv, z = self.camera.project(pose.transform_points(pose.invert(frame.T_wc), p_w))
-        seen = (z > 0) & self.camera.inside(uv)
-        self.previous = self.reference(frame, uv[seen], z[seen]) if bool(seen.any()) else None
 
     def _view(self, p_w: torch.Tensor, T_cw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pixels of world points `(N, 3)` in camera `T_cw`, and which of them it sees."""
@@ -472,7 +453,6 @@ class _Solved:
     stats: DirectStats
     refs: list[Reference]
     p_w: torch.Tensor
-    fitted: torch.Tensor  # which points of `p_w` the solution fits (within the Huber threshold)
 
 
 def _best_fit(

@@ -116,8 +116,6 @@ class LevelProblem:
         # of depth): the level has converged.
         self.converged = 0.1 / camera.fx * 2.0
         self.n_refs = n_refs
-        self.anchor: np.ndarray | None = None  # T_wc of the motion guess (motion prior)
-        self.prior_weight = 0.5 * cfg.huber**2 / max(cfg.motion_prior, 1e-9) ** 2
         self.affine = cfg.affine
         if self.affine:  # columns: the gains of the references, then their offsets
             onehot = F.one_hot(ref_of, n_refs).to(p_w.dtype)
@@ -152,14 +150,7 @@ class LevelProblem:
         w = torch.where(a <= k, torch.ones_like(a), k / a.clamp_min(1e-12)) * valid
         drift = (ab - PRIOR_BRIGHTNESS).reshape(-1)
         cost = float(rho.mean()) + 0.5 * BRIGHTNESS_PRIOR * float(drift @ drift) * self.affine
-        if self.anchor is not None:
-            d = self._deviation(T_cw)
-            cost += 0.5 * self.prior_weight * float(d @ d)
         return Evaluation(r, valid, w, cost, p_c, inv_z, sample[1:])
-
-    def _deviation(self, T_cw: np.ndarray) -> np.ndarray:
-        """Translation of `T_cw` relative to the guess's (the anchor)."""
-        return (T_cw @ self.anchor)[:3, 3]
 
     def normal_equations(self, e: Evaluation, ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`H` and `g` of the weighted least squares in (pose increment, gains, offsets)."""
@@ -190,9 +181,6 @@ class LevelProblem:
         while used < budget:
             used += 1
             H, g = self.normal_equations(current, ab)
-            if self.anchor is not None:
-                H[:3, :3] += self.prior_weight * np.eye(3)
-                g[:3] += self.prior_weight * self._deviation(T_cw)
             H_lm = H + damping * np.diag(np.maximum(np.diag(H), 1e-12))
             try:
                 step = -np.linalg.solve(H_lm, g)

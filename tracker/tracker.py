@@ -68,17 +68,6 @@ class TrackerConfig:
         "direct: of the keyframes a frame is tracked against, how many whose depth an older "
         "map rendered are rendered again from the newest (the stalest first).",
     )
-    previous: bool = option(
-        False,
-        "direct: also track against the previous frame: the points its solve fitted, at the "
-        "depth the map gave them, with its own intensities (SVO's frame-to-frame alignment: "
-        "the nearest view in time, whatever the keyframes).",
-    )
-    motion_prior: float = option(
-        0.0,
-        "direct: sigma (map units) of a prior that holds the translation near the motion "
-        "guess, weighted as half a Huber outlier at one sigma (0: none).",
-    )
     huber: float = option(9 / 255, "direct: Huber threshold on intensity residuals in [0, 1].")
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
     lost_residual: float = option(
@@ -151,34 +140,12 @@ class Tracker:
         Raises:
             TrackingLost: the loss diverged or the poses became non-finite.
         """
-        window = self._window(field, local, keyframes)
-        newest_ids = {id(f) for f in local[-self.cfg.optimize_last :]}
-        movable = [not f.keyframe and id(f) in newest_ids for f in window]
-        if all(movable):  # nothing fixed to warp from: the oldest frame anchors the rest
-            movable[0] = False
-        return self._solve(field, window, movable, self.cfg.iters)
-
-    def refine(
-        self, field: FieldFn, local: list[FrameState], keyframes: list[FrameState], iters: int
-    ) -> TrackResult:
-        """`iters` steps of the window objective on the pose of `local[-1]` alone (keyframe or
-        not), every other frame of the window fixed: a refinement of a pose solved otherwise.
-
-        Raises:
-            TrackingLost: as `track`; the frame keeps its pose.
-        """
-        window = self._window(field, local, keyframes)
-        return self._solve(field, window, [f is local[-1] for f in window], iters)
-
-    def _window(
-        self, field: FieldFn, local: list[FrameState], keyframes: list[FrameState]
-    ) -> list[FrameState]:
-        """`local` after the keyframes (not in it) that overlap its newest frame best."""
+        newest = local[-1]
         in_local = {id(f) for f in local}
         candidates = [kf for kf in keyframes if id(kf) not in in_local]
         fixed = overlapping_keyframes(
             field,
-            local[-1],
+            newest,
             candidates,
             self.camera,
             self.cfg.keyframes,
@@ -187,16 +154,15 @@ class Tracker:
             self.render_cfg,
             self.generator,
         )
-        return fixed + local
-
-    def _solve(
-        self, field: FieldFn, window: list[FrameState], movable: list[bool], iters: int
-    ) -> TrackResult:
+        window = fixed + local
+        newest_ids = {id(f) for f in local[-self.cfg.optimize_last :]}
+        movable = [not f.keyframe and id(f) in newest_ids for f in window]
+        if all(movable):  # nothing fixed to warp from: the oldest frame anchors the rest
+            movable[0] = False
         objective = self._objective(field, window, movable)
         stats = minimize(
-            window, movable, objective, iters, self.cfg.pose_lr, max_loss=self.cfg.max_loss
+            window, movable, objective, self.cfg.iters, self.cfg.pose_lr, max_loss=self.cfg.max_loss
         )
-        newest = window[-1]
         return TrackResult(newest.index, newest.T_wc, stats, tuple(f.index for f in window))
 
     def relocalize(
