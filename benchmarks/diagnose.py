@@ -54,6 +54,7 @@ from dimslam.common.optim.window import (
     FrameState,
     TrackingLost,
     adam,
+    image_tensor,
     optimize_window,
     random_pixels,
 )
@@ -546,7 +547,7 @@ def _warp_cost(images, poses, camera, uv: torch.Tensor, depth: torch.Tensor, los
 
 def _image(frame) -> torch.Tensor:
     """A dataset frame's colour image as the system holds it: `(H, W, 3)` float in [0, 1]."""
-    return torch.from_numpy(frame.rgb).float() / 255
+    return image_tensor(frame.rgb)
 
 
 def _textured(rgb: torch.Tensor, known: np.ndarray) -> np.ndarray:

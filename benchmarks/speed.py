@@ -56,7 +56,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.synth import FPS, SynthScene, default_camera
 from dimslam.common.map.field import make_field
-from dimslam.common.optim.window import FrameState, TrackingLost, adam
+from dimslam.common.optim.window import FrameState, TrackingLost, adam, image_tensor
 from dimslam.common.options import apply_overrides
 from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import INIT_START, MapperConfig
@@ -182,7 +182,7 @@ def time_tracking(
     for frame in frames:
         index = slam.fed
         slam.fed += 1
-        rgb = torch.from_numpy(frame.rgb).to(device).float() / 255.0
+        rgb = image_tensor(frame.rgb, device)
         guess = front.guess(index)  # what `track` starts from too (no continued map here)
         window = [
             replace(f, T_wc=f.T_wc.clone()) for f in front.frames[1 - cfg.tracker.local_frames :]

@@ -24,7 +24,7 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.trajectory import Trajectory, write_tum
-from dimslam.common.optim.window import FrameState
+from dimslam.common.optim.window import FrameState, image_tensor
 from dimslam.common.options import to_dict
 from dimslam.common.progress import Progress
 from dimslam.mapper.backend import BackEnd
@@ -64,7 +64,7 @@ class Slam:
     def add(self, frame: Frame) -> list[FrameState]:
         """Process one frame; returns the frames whose poses became known (for publishing):
         none while initializing or when the frame is lost (`lost_frames`)."""
-        rgb = torch.from_numpy(frame.rgb).to(self.device).float() / 255.0
+        rgb = image_tensor(frame.rgb, self.device)
         if rgb.shape[:2] != (self.camera.height, self.camera.width):
             raise DimslamError(f"frame {frame.index}: size {rgb.shape[1]}x{rgb.shape[0]} != camera")
         index, self.fed = self.fed, self.fed + 1  # position in the stream, after the stride

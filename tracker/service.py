@@ -68,7 +68,7 @@ from dimslam.common.net.transport import (
     pose_publisher,
     publisher,
 )
-from dimslam.common.optim.window import FrameState
+from dimslam.common.optim.window import FrameState, image_tensor
 from dimslam.common.progress import Progress
 from dimslam.tracker.frontend import FrontEnd
 
@@ -429,7 +429,7 @@ class TrackerService:
         assert self.camera is not None
         if rgb.shape[1] != self.camera.width:
             rgb = cv2.resize(rgb, self.camera.size, interpolation=cv2.INTER_AREA)
-        return torch.from_numpy(rgb).to(self.device).float() / 255.0
+        return image_tensor(rgb, self.device)
 
     def _process(self, seq: int, timestamp: float, rgb: torch.Tensor, sent_ns: int) -> None:
         assert self.front is not None

@@ -13,7 +13,7 @@ import torch
 
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.net.messages import MappingBatch, MappingFrame, MapSnapshot, MessageError
-from dimslam.common.optim.window import FrameState
+from dimslam.common.optim.window import FrameState, image_tensor
 
 
 def pose_array(T_wc: torch.Tensor) -> np.ndarray:
@@ -50,7 +50,7 @@ def from_batch(batch: MappingBatch, device: torch.device) -> list[FrameState]:
         FrameState(
             f.seq,
             f.timestamp,
-            torch.from_numpy(f.rgb).to(device).float() / 255.0,
+            image_tensor(f.rgb, device),
             pose_tensor(f.T_wc, device),
             f.keyframe,
         )

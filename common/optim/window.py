@@ -14,6 +14,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from dimslam.common.errors import DimslamError
@@ -57,6 +58,12 @@ class FrameState:
     rgb: torch.Tensor | None
     T_wc: torch.Tensor
     keyframe: bool = False
+
+
+def image_tensor(rgb: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:
+    """An `(H, W, 3)` uint8 RGB image as `FrameState.rgb` holds it: float32 in [0, 1] on
+    `device`."""
+    return torch.from_numpy(rgb).to(device).float() / 255.0
 
 
 @dataclass
