@@ -1,6 +1,6 @@
 """Where along the path an estimate's error comes from: local accuracy and local scale.
 
-    python benchmarks/drift.py TRAJ DATASET [--segment 30] [--frames N] [--json FILE]
+    python benchmarks/drift.py TRAJ DATASET [--segment 30] [--frames N] [--steps A-B] [--json FILE]
 
 TRAJ is a TUM trajectory (a run's `trajectory.txt`), DATASET anything the readers know with
 ground truth. The whole trajectory is aligned once (Sim(3), as `dimslam eval` does); then the
@@ -15,7 +15,11 @@ own (`common/eval/drift.py`). Per segment it prints:
 A small local ATE with a large global error and local scales away from 1 says the error is
 scale drift between segments, not tracking noise within them. `--frames N` keeps only the
 estimate's first N poses (alignment included): what the ATE would be without a bad final
-stretch.
+stretch. `--steps A-B` then prints, for matched poses A to B, each frame-to-frame step of
+the estimate (under the global alignment) against the ground truth's: its length, the cosine
+between the two directions (-1: the estimate moved back) and the rotation turned. A tracker
+that trades translation for rotation shows there as a step pointing the wrong way while it
+turns too far.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import argparse
 import json
 from pathlib import Path
 
-from dimslam.common.eval.drift import SEGMENT, scale_spread, segment_drift
+from dimslam.common.eval.drift import SEGMENT, frame_steps, scale_spread, segment_drift
 from dimslam.common.io.datasets import open_dataset
 from dimslam.common.io.trajectory import Trajectory, read_tum
 
@@ -35,8 +39,17 @@ def main() -> None:
     p.add_argument("dataset", help="dataset with ground truth")
     p.add_argument("--segment", type=int, default=SEGMENT, help="matched poses per segment")
     p.add_argument("--frames", type=int, help="use only the estimate's first N poses")
+    p.add_argument("--steps", help="A-B: print the frame-to-frame steps of matched poses A..B")
     p.add_argument("--json", type=Path, help="also write the figures here")
     args = p.parse_args()
+    steps = None
+    if args.steps is not None:
+        try:
+            steps = tuple(int(x) for x in args.steps.split("-"))
+            if len(steps) != 2 or not 0 <= steps[0] <= steps[1]:
+                raise ValueError
+        except ValueError:
+            p.error(f"--steps wants A-B with 0 <= A <= B, got {args.steps!r}")
     if args.segment < 3:
         p.error("--segment must be at least 3 (a Sim(3) needs 3 points)")
     if args.frames is not None and args.frames < 3:
@@ -60,8 +73,17 @@ def main() -> None:
             f"| {100 * r.local_ate_m:6.2f} cm | {r.local_scale:11.3f} "
             f"| {100 * r.path_m:4.0f} cm | {r.turn_deg:4.0f} deg"
         )
+    figures = {"whole": whole.to_dict(), "segments": [r.to_dict() for r in rows]}
+    if steps is not None:
+        moves = frame_steps(est, gt, *steps)
+        print("frame | err      | step est / gt    | cos   | turn est / gt")
+        for m in moves:
+            print(
+                f"{m.index:5d} | {100 * m.err_m:5.2f} cm | {100 * m.est_m:5.2f} / "
+                f"{100 * m.gt_m:5.2f} cm | {m.cos:+.2f} | {m.est_deg:4.2f} / {m.gt_deg:4.2f} deg"
+            )
+        figures["steps"] = [m.to_dict() for m in moves]
     if args.json:
-        figures = {"whole": whole.to_dict(), "segments": [r.to_dict() for r in rows]}
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
 
 

@@ -102,6 +102,61 @@ def segment_drift(
     return whole, rows
 
 
+@dataclass(frozen=True)
+class Step:
+    """The motion from one matched pose to the next, estimate against ground truth.
+
+    Attributes:
+        index: the matched pose the step ends at.
+        err_m: that pose's error under the whole trajectory's alignment.
+        est_m, gt_m: distance moved (estimate after the alignment, ground truth).
+        cos: cosine between the two moves' directions (-1: the estimate went back).
+        est_deg, gt_deg: rotation turned.
+    """
+
+    index: int
+    err_m: float
+    est_m: float
+    gt_m: float
+    cos: float
+    est_deg: float
+    gt_deg: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def frame_steps(
+    est: Trajectory, gt: Trajectory, first: int, last: int, *, max_dt: float = 0.02
+) -> list[Step]:
+    """Frame-to-frame motion of matched poses `first`..`last` (both included) under the whole
+    trajectory's Sim(3): where a tracker turned too far or moved the wrong way."""
+    whole = evaluate_trajectory(est, gt, max_dt=max_dt)
+    idx_est, idx_gt = associate(est.timestamps, gt.timestamps, max_dt)
+    E = whole.alignment.apply_poses(est.poses[idx_est])
+    G = gt.poses[idx_gt]
+    rows = []
+    for i in range(max(first, 1), min(last, len(E) - 1) + 1):
+        de, dg = E[i, :3, 3] - E[i - 1, :3, 3], G[i, :3, 3] - G[i - 1, :3, 3]
+        norms = float(np.linalg.norm(de) * np.linalg.norm(dg))
+        turns = [
+            math.degrees(pose.rotation_angle(torch.from_numpy(T[i - 1, :3, :3].T @ T[i, :3, :3])))
+            for T in (E, G)
+        ]
+        rows.append(
+            Step(
+                index=i,
+                err_m=float(whole.errors_m[i]),
+                est_m=float(np.linalg.norm(de)),
+                gt_m=float(np.linalg.norm(dg)),
+                cos=float(de @ dg) / norms if norms > 0 else math.nan,
+                est_deg=turns[0],
+                gt_deg=turns[1],
+            )
+        )
+    return rows
+
+
 def scale_spread(segments: list[Segment]) -> float:
     """How far the segments' scales disagree: largest over smallest, minus 1 (0.05: 5 %);
     NaN with fewer than two segments."""

@@ -8,7 +8,12 @@ import re
 import numpy as np
 import pytest
 
-from dimslam.common.eval.drift import scale_spread, segment_drift, segment_scale_spread
+from dimslam.common.eval.drift import (
+    frame_steps,
+    scale_spread,
+    segment_drift,
+    segment_scale_spread,
+)
 from dimslam.common.eval.report import evaluate_files, format_metrics, report_run
 from dimslam.common.io.synth import write_sequence
 from dimslam.common.io.trajectory import Trajectory, read_tum, write_tum
@@ -45,6 +50,23 @@ def test_a_scaled_second_half_shows_as_scale_spread():
     assert scales[1] / scales[2] == pytest.approx(1.2, rel=1e-6)
     assert scale_spread(rows) == pytest.approx(0.2, rel=1e-6)
     assert whole.ate_rmse_m > 0.01
+
+
+def test_steps_show_where_an_estimate_moves_back_while_turning_too_far():
+    gt = helix(120)
+    poses = gt.poses.copy()
+    for i in range(100, 120):  # from pose 100 on: each step reversed, with a 3-degree turn
+        step = gt.poses[i, :3, 3] - gt.poses[i - 1, :3, 3]
+        poses[i, :3, 3] = poses[i - 1, :3, 3] - step
+        c, s = math.cos(math.radians(3 * (i - 99))), math.sin(math.radians(3 * (i - 99)))
+        poses[i, :3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    steps = frame_steps(Trajectory(gt.timestamps, poses), gt, 98, 130)
+    assert [m.index for m in steps] == list(range(98, 120))  # clipped to the path
+    before, after = steps[:2], steps[2:]
+    assert all(m.cos > 0.9 and m.est_deg < 1e-3 for m in before)
+    assert all(m.cos < -0.9 for m in after)
+    assert all(m.est_deg == pytest.approx(3.0, abs=1e-3) and m.gt_deg < 1e-3 for m in after)
+    assert after[-1].err_m > after[0].err_m
 
 
 def test_an_exact_copy_has_no_spread_and_short_paths_have_none():
