@@ -144,7 +144,7 @@ class DirectTracker:
         rendered = 0
         for kf in keyframes[-self.cfg.references :]:
             if kf.rgb is not None and self._stale(kf):
-                self.render(field, kf, keyframes)
+                self.render(field, kf)
                 rendered += 1
         return rendered
 
@@ -152,25 +152,14 @@ class DirectTracker:
         ref = self.references.get(kf.index)
         return ref is None or ref.version < self.version
 
-    def render(self, field: FieldFn, kf: FrameState, keyframes: list[FrameState]) -> Reference:
-        """Render the depth of `kf`'s high-gradient pixels and keep them as a reference: those
-        where the map has a surface and, with `tracker.min_views`, that more than that many of
-        the other `keyframes` see (the paper's visibility mask: the map is constrained there
-        by several views)."""
+    def render(self, field: FieldFn, kf: FrameState) -> Reference:
+        """Render the depth of `kf`'s high-gradient pixels and keep them as a reference."""
         assert kf.rgb is not None
         uv = losses.high_gradient_pixels(kf.rgb, self.cfg.ref_points, self.generator, 2)
         uv = torch.unique(uv, dim=0).float()
         with torch.no_grad():
             out = render_pixels(field, self.camera, uv, kf.T_wc, self.render_cfg, with_color=False)
         depth = torch.where(out.opacity > 0.5, out.depth, math.nan)
-        others = [o.T_wc for o in keyframes if o is not kf]
-        needed = min(self.cfg.min_views, len(others) - 1)
-        if needed > 0:
-            p_w = pose.transform_points(kf.T_wc, self.camera.unproject(uv, depth.nan_to_num()))
-            T_cw = pose.invert(torch.stack(others))  # (K, 4, 4)
-            uv_o, z = self.camera.project(pose.transform_points(T_cw, p_w[None]))
-            views = ((z > 0) & self.camera.inside(uv_o)).sum(dim=0)
-            depth = torch.where(views > needed, depth, math.nan)
         ref = self.references[kf.index] = self.reference(kf, uv, depth)
         return ref
 
@@ -220,7 +209,7 @@ class DirectTracker:
         rendered = 0
         newest = keyframes[-1] if keyframes else None
         if newest is not None and newest.index not in self.references and newest.rgb is not None:
-            self.render(field, newest, keyframes)
+            self.render(field, newest)
             rendered = 1
         # A keyframe where the map has no surface yet has too few points to count.
         refs = [r for r in self.references.values() if len(r.p_k) >= MIN_POINTS]
@@ -236,7 +225,7 @@ class DirectTracker:
         # keyframe is rendered again, a few per frame so that no frame pays for many.
         stale = sorted((r for r in chosen if r.version < self.version), key=lambda r: r.version)
         for r in stale[: self.cfg.refresh]:
-            chosen[chosen.index(r)] = self.render(field, r.keyframe, keyframes)
+            chosen[chosen.index(r)] = self.render(field, r.keyframe)
             rendered += 1
         return chosen, rendered
 

@@ -68,11 +68,6 @@ class TrackerConfig:
         "direct: of the keyframes a frame is tracked against, how many whose depth an older "
         "map rendered are rendered again from the newest (the stalest first).",
     )
-    min_views: int = option(
-        0,
-        "direct: a reference point counts where more than this many other keyframes see it "
-        "(0: all points).",
-    )
     huber: float = option(9 / 255, "direct: Huber threshold on intensity residuals in [0, 1].")
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
     lost_residual: float = option(
