@@ -367,12 +367,8 @@ class DirectTracker:
         stats = DirectStats(references=tuple(r.keyframe.index for r in refs), points=len(pts.p_w))
         budget = self.cfg.iters
         finest = None
-        # The motion prior's anchor: the motion guess (a search's start when relocalizing).
-        guess = frame.T_wc.double().cpu().numpy()
         for level in reversed(range(len(images))):
             finest = self._problem(images, refs, pts, level)
-            if self.cfg.motion_prior > 0:
-                finest.anchor = guess
             # A fair share of the iterations left; what a level leaves unused passes on.
             T_cw, ab, used, cost = finest.minimize(T_cw, ab, max(1, budget // (level + 1)))
             budget -= used

@@ -116,15 +116,6 @@ class LevelProblem:
         # of depth): the level has converged.
         self.converged = 0.1 / camera.fx * 2.0
         self.n_refs = n_refs
-        # The motion prior (`tracker.motion_prior`): where the data leave a direction of the
-        # pose weakly fixed (on a narrow view of far walls, a turn and a sideways move look
-        # alike), the pose stays at the motion guess `anchor` (T_wc) instead of sliding to
-        # wherever the map's errors put the minimum. Translation in map units, rotation as the
-        # motion of a point 2 units (the gauge depth) away; the weight puts a deviation of one
-        # sigma at the cost of a residual at the Huber threshold.
-        self.anchor: np.ndarray | None = None
-        sigma = max(cfg.motion_prior, 1e-9)
-        self.prior_weight = 0.5 * cfg.huber**2 / sigma**2 * np.array([1, 1, 1, 4, 4, 4.0])
         self.affine = cfg.affine
         if self.affine:  # columns: the gains of the references, then their offsets
             onehot = F.one_hot(ref_of, n_refs).to(p_w.dtype)
@@ -159,17 +150,7 @@ class LevelProblem:
         w = torch.where(a <= k, torch.ones_like(a), k / a.clamp_min(1e-12)) * valid
         drift = (ab - PRIOR_BRIGHTNESS).reshape(-1)
         cost = float(rho.mean()) + 0.5 * BRIGHTNESS_PRIOR * float(drift @ drift) * self.affine
-        if self.anchor is not None:
-            d = self._deviation(T_cw)
-            cost += 0.5 * float(self.prior_weight @ (d * d))
         return Evaluation(r, valid, w, cost, p_c, inv_z, sample[1:])
-
-    def _deviation(self, T_cw: np.ndarray) -> np.ndarray:
-        """The twist (translation, rotation vector) of `T_cw` relative to the guess."""
-        D = T_cw @ self.anchor
-        R = D[:3, :3]
-        w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-        return np.concatenate([D[:3, 3], w])
 
     def normal_equations(self, e: Evaluation, ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`H` and `g` of the weighted least squares in (pose increment, gains, offsets)."""
@@ -200,9 +181,6 @@ class LevelProblem:
         while used < budget:
             used += 1
             H, g = self.normal_equations(current, ab)
-            if self.anchor is not None:
-                H[:6, :6] += np.diag(self.prior_weight)
-                g[:6] += self.prior_weight * self._deviation(T_cw)
             H_lm = H + damping * np.diag(np.maximum(np.diag(H), 1e-12))
             try:
                 step = -np.linalg.solve(H_lm, g)

@@ -68,11 +68,6 @@ class TrackerConfig:
         "direct: of the keyframes a frame is tracked against, how many whose depth an older "
         "map rendered are rendered again from the newest (the stalest first).",
     )
-    motion_prior: float = option(
-        0.0,
-        "direct: sigma (map units) of a prior holding the pose near the motion guess (its "
-        "rotation as the motion of a point 2 units away; 0: none).",
-    )
     huber: float = option(9 / 255, "direct: Huber threshold on intensity residuals in [0, 1].")
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
     lost_residual: float = option(
