@@ -78,10 +78,7 @@ def segment_drift(
     """
     if length < MIN_MATCHES:
         raise ValueError(f"segments need at least {MIN_MATCHES} poses, got {length}")
-    whole = evaluate_trajectory(est, gt, align=align, max_dt=max_dt)
-    idx_est, idx_gt = associate(est.timestamps, gt.timestamps, max_dt)  # as evaluate_trajectory
-    E = whole.alignment.apply_poses(est.poses[idx_est])
-    G = gt.poses[idx_gt]
+    whole, E, G = _aligned(est, gt, align, max_dt)
     rows = []
     for a in range(0, len(E) - length + 1, length):
         e, g = E[a : a + length, :3, 3], G[a : a + length, :3, 3]
@@ -100,6 +97,16 @@ def segment_drift(
             )
         )
     return whole, rows
+
+
+def _aligned(
+    est: Trajectory, gt: Trajectory, align: Literal["sim3", "se3"], max_dt: float
+) -> tuple[TrajectoryMetrics, np.ndarray, np.ndarray]:
+    """The whole trajectory's metrics, and the matched poses: the estimate's under its
+    alignment, the ground truth's."""
+    whole = evaluate_trajectory(est, gt, align=align, max_dt=max_dt)
+    idx_est, idx_gt = associate(est.timestamps, gt.timestamps, max_dt)  # as evaluate_trajectory
+    return whole, whole.alignment.apply_poses(est.poses[idx_est]), gt.poses[idx_gt]
 
 
 @dataclass(frozen=True)
@@ -131,10 +138,7 @@ def frame_steps(
 ) -> list[Step]:
     """Frame-to-frame motion of matched poses `first`..`last` (both included) under the whole
     trajectory's Sim(3): where a tracker turned too far or moved the wrong way."""
-    whole = evaluate_trajectory(est, gt, max_dt=max_dt)
-    idx_est, idx_gt = associate(est.timestamps, gt.timestamps, max_dt)
-    E = whole.alignment.apply_poses(est.poses[idx_est])
-    G = gt.poses[idx_gt]
+    whole, E, G = _aligned(est, gt, "sim3", max_dt)
     rows = []
     for i in range(max(first, 1), min(last, len(E) - 1) + 1):
         de, dg = E[i, :3, 3] - E[i - 1, :3, 3], G[i, :3, 3] - G[i - 1, :3, 3]
