@@ -44,6 +44,7 @@ from dimslam.common.optim.window import FrameState, TrackingLost, WindowStats
 from dimslam.tracker.photometric import (
     LevelProblem,
     grey,
+    huber_mean,
     level_uv,
     pyramid,
     se3_exp,
@@ -379,8 +380,8 @@ class DirectTracker:
         check = finest.evaluate(T_cw, ab)
         n_valid = int(check.valid.sum())
         rv = check.r[check.valid]
-        residual = math.sqrt(2 * finest.huber_mean(rv)) if n_valid else math.inf
-        inliers = _best_fit(check.r.abs() <= self.cfg.huber, check.valid, finest.ref_of, len(refs))
+        residual = math.sqrt(2 * huber_mean(rv, self.cfg.fit)) if n_valid else math.inf
+        inliers = _best_fit(check.r.abs() <= self.cfg.fit, check.valid, finest.ref_of, len(refs))
         stats.loss = stats.residual = residual
         stats.inliers = inliers
         if not (np.isfinite(T_cw).all() and math.isfinite(residual)):

@@ -121,11 +121,6 @@ class LevelProblem:
             onehot = F.one_hot(ref_of, n_refs).to(p_w.dtype)
             self.A = torch.cat([-centred[:, None] * onehot, -onehot], dim=1)
 
-    def huber_mean(self, r: torch.Tensor) -> float:
-        k = self.huber
-        a = r.abs()
-        return float(torch.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k)).mean())
-
     def evaluate(self, T_cw: np.ndarray, ab: np.ndarray) -> Evaluation:
         R = torch.from_numpy(T_cw[:3, :3]).to(self.p_w.dtype)
         t = torch.from_numpy(T_cw[:3, 3]).to(self.p_w.dtype)
@@ -205,6 +200,12 @@ class LevelProblem:
                 if damping > 1e4:
                     break
         return T_cw, ab, used, current.cost
+
+
+def huber_mean(r: torch.Tensor, k: float) -> float:
+    """Mean Huber cost of residuals `r` at threshold `k`."""
+    a = r.abs()
+    return float(torch.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k)).mean())
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:

@@ -68,7 +68,14 @@ class TrackerConfig:
         "direct: of the keyframes a frame is tracked against, how many whose depth an older "
         "map rendered are rendered again from the newest (the stalest first).",
     )
-    huber: float = option(9 / 255, "direct: Huber threshold on intensity residuals in [0, 1].")
+    huber: float = option(
+        9 / 255, "direct: Huber threshold of the solve's robust weights (intensities in [0, 1])."
+    )
+    fit: float = option(
+        9 / 255,
+        "direct: a point fits where its residual is within this (intensities in [0, 1]); the "
+        "lost checks' robust residual and share of inliers are measured with it.",
+    )
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
     lost_residual: float = option(
         0.1, "direct: robust residual RMS above which a frame counts as lost."
