@@ -66,6 +66,22 @@ def test_a_change_of_exposure_is_absorbed_by_the_brightness_model():
         assert offset < -0.03  # the frame is darker than its reference
 
 
+def test_the_lost_checks_count_fitting_points_by_their_own_threshold_not_the_solve_s():
+    # Without the brightness model a darker frame leaves residuals of 0.03-0.1: outside the
+    # default 9/255 a point fits by, inside 0.2.
+    darker = 0.85 * textured_wall_image(TRUTH, CAM) + 0.03
+
+    def track(**kw) -> None:
+        t = solver(affine=False, **kw)
+        t.map_changed(wall, [keyframe(KF)], version=1)
+        frame = FrameState(1, 0.1, darker, pose.retract(TRUTH, torch.full((6,), 0.005)))
+        t.track(wall, [frame], [])
+
+    with pytest.raises(TrackingLost, match="inliers"):
+        track(huber=0.2)  # a wide robust kernel in the solve changes nothing of the checks
+    track(fit=0.2)
+
+
 def test_a_frame_of_something_else_is_lost_and_keeps_its_guess():
     t = solver()
     t.map_changed(wall, [keyframe(KF)], version=1)
