@@ -1,0 +1,174 @@
+"""One run up to a frame, then the rest of it once per tracker variant, from the same state.
+
+    python benchmarks/branch.py DATASET --at F [--seed S] [--preset cpu]
+        --variant '' --variant 'tracker.huber=0.0118' --variant 'tracker.solver=adam' ...
+        [--out DIR] [--json FILE]
+
+Single-process runs are chaotic: the poses feed the map, which feeds the poses, so two whole
+runs that differ in one setting differ everywhere after the first frame where they part, and
+a stretch that goes wrong in one run may not be reached in the other. This runs SLAM (one
+process, one thread) on DATASET's first F frames once, then forks a child per variant that
+continues from that state: the same map, keyframes, poses and random stream, with only the
+variant's settings changed on the tracking side. Each child maps and tracks the rest of the
+sequence, finishes as `dimslam run` does, writes `DIR/<k>/trajectory.txt` and reports:
+
+- *ATE*: the whole trajectory's, after Sim(3) (as `dimslam eval`);
+- *after F*: over the frames from F on, under that same alignment: the RMSE, the steps that
+  point backwards (`benchmarks/drift.py --steps`), the rotation turned over the true one,
+  and the error of the last frame;
+- the frames lost.
+
+A variant is `key=value` overrides joined by `;`, keys in the `tracker.` and `loss.`
+sections (the loss settings reach the Adam window tracker only; the mapper keeps the run's
+settings); '' is the run as it is. A variant of the same solver swaps its settings in and
+keeps what the solver cached; another solver starts fresh at F (the direct one renders its
+references from the map at F). Children run one after another. POSIX only (fork).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dimslam.common.config import PRESETS
+from dimslam.common.eval.drift import frame_steps
+from dimslam.common.eval.evaluation import evaluate_trajectory
+from dimslam.common.io.datasets import ReaderOptions, open_dataset
+from dimslam.common.io.trajectory import write_tum
+from dimslam.common.options import apply_overrides
+from dimslam.common.slam import Slam
+from dimslam.tracker.direct import DirectTracker
+from dimslam.tracker.tracker import Tracker
+
+SECTIONS = ("tracker.", "loss.")
+
+
+def parse_variant(text: str) -> dict[str, str]:
+    """`key=value;key=value` -> overrides; only tracking-side sections."""
+    out = {}
+    for part in filter(None, (p.strip() for p in text.split(";"))):
+        key, sep, value = part.partition("=")
+        if not sep or not key.startswith(SECTIONS):
+            raise ValueError(f"{part!r}: want key=value with a key in {', '.join(SECTIONS)}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def switch(slam: Slam, overrides: dict[str, str]) -> None:
+    """Give the tracking side `overrides`: the same solver takes the new settings, another
+    one is built (and a direct one renders its references from the current map)."""
+    if not overrides:
+        return
+    cfg = apply_overrides(slam.cfg, overrides)
+    front = slam.front
+    if cfg.tracker.levels != slam.cfg.tracker.levels:
+        raise ValueError("tracker.levels sets a solver's pyramid when it is built: not here")
+    same = (cfg.tracker.solver == "direct") == isinstance(front.tracker, DirectTracker)
+    front.cfg = cfg
+    if same:
+        front.tracker.cfg = cfg.tracker
+        if isinstance(front.tracker, Tracker):
+            front.tracker.loss_cfg = cfg.loss
+        return
+    if cfg.tracker.solver == "direct":
+        front.tracker = DirectTracker(cfg.tracker, cfg.render, slam.camera, slam.generator)
+        front.tracker.map_changed(slam.back.field, front.keyframes, slam.back.rounds)
+    else:
+        front.tracker = Tracker(cfg.tracker, cfg.loss, cfg.render, slam.camera, slam.generator)
+
+
+def figures(slam: Slam, gt, at: int) -> dict:
+    """What a branch did: the whole ATE, and the frames from `at` on under its alignment."""
+    est = slam.trajectory()
+    whole = evaluate_trajectory(est, gt, align="sim3")
+    # Matched poses are in the estimate's order; the frames from `at` on are those whose
+    # index is at least `at` (lost frames have no pose).
+    indices = [f.index for f in slam.frames]
+    first = next((k for k, i in enumerate(indices) if i >= at), len(indices))
+    steps = frame_steps(est, gt, first, len(indices) - 1)
+    errors = whole.errors_m[first:]
+    true_turn = sum(s.gt_deg for s in steps)
+    return {
+        "ate_cm": 100 * whole.ate_rmse_m,
+        "after_rmse_cm": 100 * float(np.sqrt(np.mean(errors**2))) if len(errors) else math.nan,
+        "steps_back": sum(1 for s in steps if s.cos < 0),
+        "turned_over_true": sum(s.est_deg for s in steps) / true_turn if true_turn else math.nan,
+        "last_err_cm": 100 * float(errors[-1]) if len(errors) else math.nan,
+        "lost": len(slam.lost_frames),
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("dataset", help="a dataset with ground truth")
+    p.add_argument("--at", type=int, required=True, help="frames run once before the branches")
+    p.add_argument("--variant", action="append", required=True, help="'k=v;k=v' ('' as is)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
+    p.add_argument("--out", type=Path, default=Path("branch-out"), help="trajectories here")
+    p.add_argument("--json", type=Path, help="also write the figures here")
+    args = p.parse_args()
+    try:
+        variants = [parse_variant(v) for v in args.variant]
+    except ValueError as e:
+        p.error(str(e))
+    torch.set_num_threads(1)
+    cfg = apply_overrides(PRESETS[args.preset], {"seed": str(args.seed)})
+    reader = open_dataset(args.dataset, options=ReaderOptions(width=cfg.width or None))
+    gt = reader.ground_truth()
+    if gt is None:
+        p.error(f"{args.dataset} has no ground truth")
+    if not 0 < args.at < len(reader):
+        p.error(f"--at must lie inside the sequence's {len(reader)} frames")
+    slam = Slam(cfg, reader.camera, torch.device("cpu"))
+    frames = iter(reader)
+    started = time.perf_counter()
+    for n in range(args.at):
+        slam.add(next(frames))
+        if n % 25 == 0:
+            print(f"  frame {n}/{args.at}, {time.perf_counter() - started:.0f} s", flush=True)
+    rest = list(frames)
+    print(f"{args.at} frames in {time.perf_counter() - started:.0f} s; branching", flush=True)
+    results = []
+    for k, (text, overrides) in enumerate(zip(args.variant, variants, strict=True)):
+        out = args.out / str(k)
+        out.mkdir(parents=True, exist_ok=True)
+        pid = os.fork()
+        if pid == 0:  # the child: the rest of the run from the shared state
+            code = 1
+            try:
+                switch(slam, overrides)
+                for frame in rest:
+                    slam.add(frame)
+                slam.finish()
+                write_tum(out / "trajectory.txt", slam.trajectory(), header=f"variant {text!r}")
+                (out / "figures.json").write_text(json.dumps(figures(slam, gt, args.at)) + "\n")
+                code = 0
+            finally:
+                sys.stdout.flush()
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        got = json.loads((out / "figures.json").read_text()) if status == 0 else None
+        results.append({"variant": text, **(got or {"failed": True})})
+        line = (
+            f"ATE {got['ate_cm']:6.2f} cm | after {args.at}: {got['after_rmse_cm']:6.2f} cm, "
+            f"{got['steps_back']:2d} steps back, turned {got['turned_over_true']:.2f}, last "
+            f"{got['last_err_cm']:6.2f} cm | lost {got['lost']}"
+            if got
+            else "failed"
+        )
+        print(f"[{k}] {text or '(as is)':40s} {line}", flush=True)
+    if args.json:
+        args.json.write_text(json.dumps({"at": args.at, "results": results}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,53 @@
+"""benchmarks/branch.py: one run up to a frame, then the rest once per tracker variant."""
+
+import importlib
+import json
+
+import pytest
+from repo import REPO
+
+from dimslam.common.io.synth import write_sequence
+
+
+@pytest.fixture
+def branch(monkeypatch):
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    return importlib.import_module("branch")
+
+
+def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(
+    branch, tmp_path, monkeypatch, capsys
+):
+    scene = tmp_path / "scene"
+    write_sequence(scene, frames=18, width=160, height=120, seed=0)
+    figures = tmp_path / "figures.json"
+    argv = ["branch.py", str(scene), "--preset", "tiny", "--at", "12", "--out", str(tmp_path)]
+    variants = ["", "", "tracker.solver=adam;loss.patch_sizes=1"]
+    monkeypatch.setattr(
+        "sys.argv", [*argv, *(f"--variant={v}" for v in variants), "--json", str(figures)]
+    )
+    branch.main()
+    results = json.loads(figures.read_text())["results"]
+    assert [r["variant"] for r in results] == variants
+    assert not any(r.get("failed") for r in results), results
+    # Two children of one state, with nothing changed, are one computation.
+    assert results[0] == results[1]
+    # Another solver from frame 12 on: the last 6 poses differ, the first 12 do not.
+    ours, theirs = (
+        [ln.split() for ln in (tmp_path / k / "trajectory.txt").read_text().splitlines()[1:]]
+        for k in ("0", "2")
+    )
+    assert ours[:12] == theirs[:12] and ours[12:] != theirs[12:]
+    assert results[2]["lost"] == 0 and results[2]["ate_cm"] < 10.0, results[2]
+    out = capsys.readouterr().out
+    assert "[2] tracker.solver=adam;loss.patch_sizes=1" in out, out
+
+
+def test_a_variant_outside_the_tracking_side_is_refused(branch):
+    assert branch.parse_variant("tracker.huber=0.01; loss.min_views=2") == {
+        "tracker.huber": "0.01",
+        "loss.min_views": "2",
+    }
+    for bad in ("mapper.iters=5", "tracker.huber", "seed=1"):
+        with pytest.raises(ValueError, match="key=value"):
+            branch.parse_variant(bad)
