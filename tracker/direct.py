@@ -185,15 +185,11 @@ class DirectTracker:
 
     def _overlaps(self, refs: list[Reference], T_cw: torch.Tensor) -> list[float]:
         """Per reference, the share of its points in front of the camera at `T_cw` and inside
-        its image, estimated on `PROBE` of them spread over its list, all in one pass.
-
-        Spread, not the first: the points are stored in pixel order (`torch.unique` sorts them
-        by u), so the first `PROBE` lay along the keyframe image's left edge, and a keyframe
-        counted as seen when its left edge was."""
+        its image, estimated on its first `PROBE` points (in random order), all in one pass."""
         if not refs:
             return []
         T_ck = pose.compose(T_cw, torch.stack([r.keyframe.T_wc for r in refs]))  # (R, 4, 4)
-        probes = torch.stack([r.p_k[torch.arange(PROBE) * len(r.p_k) // PROBE] for r in refs])
+        probes = torch.stack([r.p_k[torch.arange(PROBE) % len(r.p_k)] for r in refs])
         uv, z = self.camera.project(pose.transform_points(T_ck, probes))  # (R, PROBE, ...)
         return ((z > 0) & self.camera.inside(uv)).float().mean(dim=1).tolist()
 
