@@ -184,8 +184,15 @@ class DirectTracker:
         )
 
     def _overlaps(self, refs: list[Reference], T_cw: torch.Tensor) -> list[float]:
-        """Per reference, the share of its points in front of the camera at `T_cw` and inside
-        its image, estimated on its first `PROBE` points (in random order), all in one pass."""
+        """Per reference, the share of its first `PROBE` points in front of the camera at
+        `T_cw` and inside its image, all in one pass.
+
+        The points are stored in pixel order (`torch.unique` sorts them by u), so these lie
+        along the keyframe image's left edge: a keyframe counts as seen when its left edge is,
+        and of those `choose` takes the newest. Measured on points spread over the whole image
+        instead (e9e62ec), 8 of the 12 development runs came out worse, room0's three by
+        2.2-3.9 cm (docs/results.md, session 15), so this stays until a rule that says what it
+        prefers (the newest keyframes that overlap enough, say) is measured against it."""
         if not refs:
             return []
         T_ck = pose.compose(T_cw, torch.stack([r.keyframe.T_wc for r in refs]))  # (R, 4, 4)
