@@ -1,18 +1,16 @@
 """benchmarks/branch.py: one run up to a frame, then the rest once per tracker variant."""
 
-import importlib
 import json
 
 import pytest
-from repo import REPO
+from repo import benchmark
 
 from dimslam.common.io.synth import write_sequence
 
 
 @pytest.fixture
 def branch(monkeypatch):
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    return importlib.import_module("branch")
+    return benchmark(monkeypatch, "branch")
 
 
 def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(

@@ -1,18 +1,15 @@
 """benchmarks/diagnose.py run --gt-poses: the map learned from true poses, the tracker's
 decisions kept; what the mapper alone makes of a sequence."""
 
-import importlib
-
 import pytest
-from repo import REPO
+from repo import benchmark
 
 from dimslam.common.io.synth import write_sequence
 
 
 @pytest.fixture
 def diagnose(monkeypatch):
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    return importlib.import_module("diagnose")
+    return benchmark(monkeypatch, "diagnose")
 
 
 def test_run_at_true_poses_puts_every_tracked_frame_on_its_ground_truth(

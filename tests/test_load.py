@@ -6,11 +6,9 @@ clock of its own; its harness subscribes to every session's topics and names the
 each message came from. And the checker itself, fed a message of the wrong session.
 """
 
-import importlib
-
 import numpy as np
 import pytest
-from repo import REPO
+from repo import benchmark
 
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.synth import write_sequence
@@ -24,8 +22,7 @@ RATE = 4.0
 @pytest.fixture
 def load(monkeypatch):
     """benchmarks/load.py as a module (it imports benchmarks/faults.py beside it)."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    return importlib.import_module("load")
+    return benchmark(monkeypatch, "load")
 
 
 def test_the_checker_names_a_message_of_another_session(load):
