@@ -33,6 +33,7 @@ import math
 import os
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -152,6 +153,8 @@ def main() -> None:
                 write_tum(out / "trajectory.txt", slam.trajectory(), header=f"variant {text!r}")
                 (out / "figures.json").write_text(json.dumps(figures(slam, gt, args.at)) + "\n")
                 code = 0
+            except BaseException:  # os._exit below would swallow it
+                traceback.print_exc()
             finally:
                 sys.stdout.flush()
                 os._exit(code)
