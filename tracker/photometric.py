@@ -139,7 +139,7 @@ class LevelProblem:
         r = sample[0] - (gains * self.centred + self.mean + offsets)
         k = self.huber
         a = r.abs()
-        rho = torch.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k))
+        rho = huber(r, k)
         # Points out of view count as outliers at the threshold, so leaving it earns nothing.
         rho = torch.where(valid, rho, torch.full_like(rho, 0.5 * k * k))
         w = torch.where(a <= k, torch.ones_like(a), k / a.clamp_min(1e-12)) * valid
@@ -202,10 +202,15 @@ class LevelProblem:
         return T_cw, ab, used, current.cost
 
 
+def huber(r: torch.Tensor, k: float) -> torch.Tensor:
+    """Huber cost of each residual of `r` at threshold `k`."""
+    a = r.abs()
+    return torch.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k))
+
+
 def huber_mean(r: torch.Tensor, k: float) -> float:
     """Mean Huber cost of residuals `r` at threshold `k`."""
-    a = r.abs()
-    return float(torch.where(a <= k, 0.5 * r * r, k * (a - 0.5 * k)).mean())
+    return float(huber(r, k).mean())
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
