@@ -18,6 +18,12 @@ sequence, finishes as `dimslam run` does, writes `DIR/<k>/trajectory.txt` and re
   and the error of the last frame;
 - the frames lost.
 
+With `--truth`, each child whose tracker is the direct one also prints, for every frame it
+tracks, whether the solve found the minimum of its own cost or the cost itself is wrong: the
+cost at its solution and at the true pose (placed in the run's world by the Sim(3) of the
+`TRUTH_FRAMES` frames before F), how far apart the two are, and where a solve started at
+the true pose ends. The line does not change the run.
+
 A variant is `key=value` overrides joined by `;`, keys in the `tracker.` and `loss.`
 sections (the loss settings reach the Adam window tracker only; the mapper keeps the run's
 settings); '' is the run as it is. A variant of the same solver swaps its settings in and
@@ -34,6 +40,7 @@ import os
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -41,15 +48,17 @@ import torch
 
 from dimslam.common.config import PRESETS
 from dimslam.common.eval.drift import frame_steps
-from dimslam.common.eval.evaluation import evaluate_trajectory
+from dimslam.common.eval.evaluation import Sim3, evaluate_trajectory
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
-from dimslam.common.io.trajectory import write_tum
+from dimslam.common.io.trajectory import Trajectory, write_tum
 from dimslam.common.options import apply_overrides
 from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import Tracker
 
 SECTIONS = ("tracker.", "loss.")
+TRUTH_FRAMES = 30
+"""Frames before the branch point whose poses place the ground truth in a run's world."""
 
 
 def parse_variant(text: str) -> dict[str, str]:
@@ -86,6 +95,71 @@ def switch(slam: Slam, overrides: dict[str, str]) -> None:
         front.tracker = Tracker(cfg.tracker, cfg.loss, cfg.render, slam.camera, slam.generator)
 
 
+def truth_in_run(
+    slam: Slam, gt: Trajectory, at: int
+) -> tuple[Callable[[float], np.ndarray], float]:
+    """The true pose at a timestamp, in the run's world, and the run's scale there: the Sim(3)
+    that takes the true poses of the `TRUTH_FRAMES` frames before `at` onto the run's (the
+    rotation from the orientations, which a short, straight stretch of centres leaves loose;
+    then scale and shift from the centres), applied to the ground truth."""
+    est = slam.trajectory()
+    recent = {f.timestamp for f in slam.frames if at - TRUTH_FRAMES <= f.index < at}
+    pairs = [
+        (E, gt.poses[_nearest(gt, t)])
+        for t, E in zip(est.timestamps, est.poses, strict=True)
+        if t in recent
+    ]
+    u, _, vt = np.linalg.svd(sum(E[:3, :3] @ G[:3, :3].T for E, G in pairs))
+    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    ce = np.stack([E[:3, 3] for E, _ in pairs])
+    cg = np.stack([G[:3, 3] for _, G in pairs]) @ R.T
+    ce0, cg0 = ce - ce.mean(0), cg - cg.mean(0)
+    s = float((ce0 * cg0).sum() / (cg0 * cg0).sum())
+    sim = Sim3(s, R, ce.mean(0) - s * cg.mean(0))
+    return (lambda t: sim.apply_poses(gt.poses[_nearest(gt, t)])), s
+
+
+def _nearest(traj: Trajectory, t: float) -> int:
+    return int(np.abs(traj.timestamps - t).argmin())
+
+
+def watch_truth(tracker: DirectTracker, truth: Callable[[float], np.ndarray], scale: float) -> None:
+    """Print, for each frame `tracker` tracks, its solve's cost at the solution and at the
+    true pose, the distance between them and where a solve from the true pose ends (finest
+    level, the solution's references and brightness); the run itself is left as it was."""
+    track = tracker.track
+
+    def watched(field, local, keyframes):
+        result = track(field, local, keyframes)
+        frame = local[-1]
+        state = tracker.generator.get_state()  # the check draws its own point order
+        refs = [tracker.references[i] for i in result.stats.references]
+        problem = tracker._problem(tracker.images(frame), refs, tracker._points(refs), 0)
+        tracker.generator.set_state(state)
+        ab = tracker._brightness(refs)
+        solved, true = frame.T_wc.double().numpy(), truth(frame.timestamp)
+        end, _, _, end_cost = problem.minimize(np.linalg.inv(true), ab, 40)
+        end = np.linalg.inv(end)
+        print(
+            f"  {frame.index}: cost {1e4 * problem.evaluate(np.linalg.inv(solved), ab).cost:.3f}"
+            f" at the solution, {1e4 * problem.evaluate(np.linalg.inv(true), ab).cost:.3f} at"
+            f" the truth ({_apart(solved, true, scale)}); from the truth to"
+            f" {1e4 * end_cost:.3f}, {_apart(end, true, scale)} from it,"
+            f" {_apart(end, solved, scale)} from the solution; references"
+            f" {list(result.stats.references)}",
+            flush=True,
+        )
+        return result
+
+    tracker.track = watched
+
+
+def _apart(a: np.ndarray, b: np.ndarray, scale: float) -> str:
+    turn = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1.0, 1.0)
+    cm = 100 * np.linalg.norm(a[:3, 3] - b[:3, 3]) / scale
+    return f"{cm:.1f} cm, {math.degrees(math.acos(turn)):.2f} deg"
+
+
 def figures(slam: Slam, gt, at: int) -> dict:
     """What a branch did: the whole ATE, and the frames from `at` on under its alignment."""
     est = slam.trajectory()
@@ -116,6 +190,11 @@ def main() -> None:
     p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     p.add_argument("--out", type=Path, default=Path("branch-out"), help="trajectories here")
     p.add_argument("--json", type=Path, help="also write the figures here")
+    p.add_argument(
+        "--truth",
+        action="store_true",
+        help="per frame of a direct variant: its cost at the solution and at the true pose",
+    )
     args = p.parse_args()
     try:
         variants = [parse_variant(v) for v in args.variant]
@@ -147,6 +226,8 @@ def main() -> None:
             code = 1
             try:
                 switch(slam, overrides)
+                if args.truth and isinstance(slam.front.tracker, DirectTracker):
+                    watch_truth(slam.front.tracker, *truth_in_run(slam, gt, args.at))
                 for frame in rest:
                     slam.add(frame)
                 slam.finish()

@@ -49,3 +49,28 @@ def test_a_variant_outside_the_tracking_side_is_refused(branch):
     for bad in ("mapper.iters=5", "tracker.huber", "seed=1"):
         with pytest.raises(ValueError, match="key=value"):
             branch.parse_variant(bad)
+
+
+def test_the_truth_check_prints_each_frame_and_leaves_the_run_as_it_was(
+    branch, tmp_path, monkeypatch, capfd
+):
+    scene = tmp_path / "scene"
+    write_sequence(scene, frames=18, width=160, height=120, seed=0)
+    runs = []
+    for flags in ([], ["--truth"]):
+        figures = tmp_path / f"figures{len(flags)}.json"
+        monkeypatch.setattr(
+            "sys.argv",
+            ["branch.py", str(scene), "--preset", "tiny", "--at", "12", "--variant=",
+             "--out", str(tmp_path / str(len(flags))), "--json", str(figures), *flags],
+        )  # fmt: skip
+        branch.main()
+        runs.append(json.loads(figures.read_text())["results"][0])
+    assert runs[0] == runs[1]  # the check draws no random numbers of the run's
+    # The children print it: capfd, not capsys, sees what a forked process writes.
+    lines = [ln for ln in capfd.readouterr().out.splitlines() if "at the solution" in ln]
+    assert len(lines) >= 5, lines  # frames 12-17, but for a frame lost
+    for line in lines:
+        # On an exact synthetic scene a solve from the true pose ends where the run's did.
+        apart = float(line.split(" from it, ")[1].split(" cm")[0])
+        assert apart < 2.0, line
