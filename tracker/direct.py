@@ -200,19 +200,6 @@ class DirectTracker:
         uv, z = self.camera.project(pose.transform_points(T_ck, probes))  # (R, PROBE, ...)
         return ((z > 0) & self.camera.inside(uv)).float().mean(dim=1).tolist()
 
-    def _coverage(self, refs: list[Reference], T_cw: torch.Tensor) -> list[float] | None:
-        """Per reference, the share of the view at `T_cw` its keyframe sees: the last solve's
-        points in that view, placed in each keyframe (None when too few are in view)."""
-        if self.last_points is None or not refs:
-            return None
-        _, seen = self._view(self.last_points, T_cw)
-        p_w = self.last_points[seen][: 4 * PROBE]
-        if len(p_w) < MIN_POINTS:
-            return None
-        T_kw = pose.invert(torch.stack([r.keyframe.T_wc for r in refs]))  # (R, 4, 4)
-        uv, z = self.camera.project(pose.transform_points(T_kw, p_w.expand(len(refs), -1, -1)))
-        return ((z > 0) & self.camera.inside(uv)).float().mean(dim=1).tolist()
-
     def choose(
         self, field: FieldFn, keyframes: list[FrameState], T_wc: torch.Tensor
     ) -> tuple[list[Reference], int]:
@@ -230,34 +217,13 @@ class DirectTracker:
             rendered = 1
         # A keyframe where the map has no surface yet has too few points to count.
         refs = [r for r in self.references.values() if len(r.p_k) >= MIN_POINTS]
-        coverage = self._coverage(refs, T_cw) if self.cfg.choose != "probe" else None
-        if coverage is not None:
-            scored = list(zip(coverage, refs, strict=True))
-
-            def rank(sr: tuple[float, Reference]) -> tuple[bool, float]:
-                enough = sr[0] > self.cfg.overlap
-                return enough, sr[1].keyframe.index if enough else sr[0]
-        else:
-            scored = list(zip(self._overlaps(refs, T_cw), refs, strict=True))
-
-            def rank(sr: tuple[float, Reference]) -> tuple[bool, float]:
-                return sr[0], sr[1].keyframe.index
-
+        scored = list(zip(self._overlaps(refs, T_cw), refs, strict=True))
         first = [(s, r) for s, r in scored if newest is not None and r.keyframe is newest]
         others = sorted(
             ((s, r) for s, r in scored if r.keyframe is not newest and s > 0.05),
-            key=rank,
+            key=lambda sr: (sr[0], sr[1].keyframe.index),
             reverse=True,
         )
-        if coverage is not None and self.cfg.choose == "spread":
-            good = sorted(
-                (r for s, r in others if s > self.cfg.overlap), key=lambda r: r.keyframe.index
-            )
-            n = self.cfg.references - len(first)
-            if len(good) > n > 0:
-                good = [good[int(k)] for k in np.unique(np.linspace(0, len(good) - 1, n).round())]
-            rest = [(s, r) for s, r in others if s <= self.cfg.overlap]
-            others = [(1.0, r) for r in good] + rest
         chosen = [r for s, r in [*first, *others] if s > 0.05][: self.cfg.references]
         # The map keeps improving where the camera returns: depth an older map gave a chosen
         # keyframe is rendered again, a few per frame so that no frame pays for many.
@@ -381,7 +347,6 @@ class DirectTracker:
             pts.ref_of[:n],
             len(refs),
             self.cfg,
-            self.cfg.huber_coarse if level > 0 and self.cfg.huber_coarse > 0 else None,
         )
 
     def solve(

@@ -104,7 +104,6 @@ class LevelProblem:
         ref_of: torch.Tensor,
         n_refs: int,
         cfg: TrackerConfig,
-        huber: float | None = None,
     ) -> None:
         self.chw = image.permute(2, 0, 1)[None].contiguous()  # (1, 3, H, W)
         h, w = image.shape[:2]
@@ -112,7 +111,7 @@ class LevelProblem:
         self.box = (MARGIN - 0.5, w - 0.5 - MARGIN, MARGIN - 0.5, h - 0.5 - MARGIN)
         self.scale = (2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1))
         self.p_w, self.centred, self.mean, self.ref_of = p_w, centred, mean, ref_of
-        self.huber = cfg.huber if huber is None else huber
+        self.huber = cfg.huber
         # A step this small moves no point by a tenth of a pixel at this level (at 2 map units
         # of depth): the level has converged.
         self.converged = 0.1 / camera.fx * 2.0

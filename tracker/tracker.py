@@ -63,13 +63,6 @@ class TrackerConfig:
         "direct: keyframes a frame is tracked against: the newest and those that see most of "
         "its view (more of them anchor it to older, better mapped keyframes).",
     )
-    choose: Literal["probe", "coverage", "spread"] = option(
-        "probe",
-        "direct: how references are ranked: probe (the keyframe's first points in view, the "
-        "newest first); coverage (the newest keyframes that see more than tracker.overlap of "
-        "the frame's view, then those that see most of it); spread (of the keyframes that see "
-        "more than tracker.overlap of the view, the oldest, the newest and evenly between).",
-    )
     refresh: int = option(
         1,
         "direct: of the keyframes a frame is tracked against, how many whose depth an older "
@@ -77,11 +70,6 @@ class TrackerConfig:
     )
     huber: float = option(
         9 / 255, "direct: Huber threshold of the solve's robust weights (intensities in [0, 1])."
-    )
-    huber_coarse: float = option(
-        0.0,
-        "direct: the solve's Huber threshold on the pyramid's coarser levels (0: "
-        "tracker.huber on every level).",
     )
     fit: float = option(
         9 / 255,
