@@ -49,6 +49,7 @@ import torch
 from dimslam.common.config import PRESETS
 from dimslam.common.eval.drift import frame_steps
 from dimslam.common.eval.evaluation import Sim3, evaluate_trajectory
+from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, write_tum
 from dimslam.common.options import apply_overrides
@@ -155,9 +156,9 @@ def watch_truth(tracker: DirectTracker, truth: Callable[[float], np.ndarray], sc
 
 
 def _apart(a: np.ndarray, b: np.ndarray, scale: float) -> str:
-    turn = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1.0, 1.0)
+    turn = math.degrees(pose.rotation_angle(torch.from_numpy(a[:3, :3].T @ b[:3, :3])))
     cm = 100 * np.linalg.norm(a[:3, 3] - b[:3, 3]) / scale
-    return f"{cm:.1f} cm, {math.degrees(math.acos(turn)):.2f} deg"
+    return f"{cm:.1f} cm, {turn:.2f} deg"
 
 
 def figures(slam: Slam, gt, at: int) -> dict:
