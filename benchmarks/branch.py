@@ -48,7 +48,7 @@ import torch
 
 from dimslam.common.config import PRESETS
 from dimslam.common.eval.drift import frame_steps
-from dimslam.common.eval.evaluation import Sim3, evaluate_trajectory
+from dimslam.common.eval.evaluation import Sim3, associate, evaluate_trajectory
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, write_tum
@@ -98,17 +98,19 @@ def switch(slam: Slam, overrides: dict[str, str]) -> None:
 
 def truth_in_run(
     slam: Slam, gt: Trajectory, at: int
-) -> tuple[Callable[[float], np.ndarray], float]:
-    """The true pose at a timestamp, in the run's world, and the run's scale there: the Sim(3)
-    that takes the true poses of the `TRUTH_FRAMES` frames before `at` onto the run's (the
-    rotation from the orientations, which a short, straight stretch of centres leaves loose;
-    then scale and shift from the centres), applied to the ground truth."""
+) -> tuple[Callable[[float], np.ndarray | None], float]:
+    """The true pose at a timestamp (None where the ground truth has none), in the run's
+    world, and the run's scale there: the Sim(3) that takes the true poses of the
+    `TRUTH_FRAMES` frames before `at` onto the run's (the rotation from the orientations,
+    which a short, straight stretch of centres leaves loose; then scale and shift from the
+    centres), applied to the ground truth. Timestamps are matched as the evaluation does."""
     est = slam.trajectory()
     recent = {f.timestamp for f in slam.frames if at - TRUTH_FRAMES <= f.index < at}
+    i_est, i_gt = associate(est.timestamps, gt.timestamps)
     pairs = [
-        (E, gt.poses[_nearest(gt, t)])
-        for t, E in zip(est.timestamps, est.poses, strict=True)
-        if t in recent
+        (est.poses[i], gt.poses[j])
+        for i, j in zip(i_est, i_gt, strict=True)
+        if est.timestamps[i] in recent
     ]
     u, _, vt = np.linalg.svd(sum(E[:3, :3] @ G[:3, :3].T for E, G in pairs))
     R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
@@ -117,14 +119,17 @@ def truth_in_run(
     ce0, cg0 = ce - ce.mean(0), cg - cg.mean(0)
     s = float((ce0 * cg0).sum() / (cg0 * cg0).sum())
     sim = Sim3(s, R, ce.mean(0) - s * cg.mean(0))
-    return (lambda t: sim.apply_poses(gt.poses[_nearest(gt, t)])), s
+
+    def truth(t: float) -> np.ndarray | None:
+        _, j = associate(np.array([t]), gt.timestamps)
+        return sim.apply_poses(gt.poses[j[0]]) if len(j) else None
+
+    return truth, s
 
 
-def _nearest(traj: Trajectory, t: float) -> int:
-    return int(np.abs(traj.timestamps - t).argmin())
-
-
-def watch_truth(tracker: DirectTracker, truth: Callable[[float], np.ndarray], scale: float) -> None:
+def watch_truth(
+    tracker: DirectTracker, truth: Callable[[float], np.ndarray | None], scale: float
+) -> None:
     """Print, for each frame `tracker` tracks, its solve's cost at the solution and at the
     true pose, the distance between them and where a solve from the true pose ends (finest
     level, the solution's references and brightness); the run itself is left as it was."""
@@ -133,12 +138,15 @@ def watch_truth(tracker: DirectTracker, truth: Callable[[float], np.ndarray], sc
     def watched(field, local, keyframes):
         result = track(field, local, keyframes)
         frame = local[-1]
+        true = truth(frame.timestamp)
+        if true is None:
+            return result
         state = tracker.generator.get_state()  # the check draws its own point order
         refs = [tracker.references[i] for i in result.stats.references]
         problem = tracker._problem(tracker.images(frame), refs, tracker._points(refs), 0)
         tracker.generator.set_state(state)
         ab = tracker._brightness(refs)
-        solved, true = frame.T_wc.double().numpy(), truth(frame.timestamp)
+        solved = frame.T_wc.double().numpy()
         end, _, _, end_cost = problem.minimize(np.linalg.inv(true), ab, 40)
         end = np.linalg.inv(end)
         print(
