@@ -43,7 +43,7 @@ from dimslam.common.optim import losses
 from dimslam.common.optim.window import FrameState, TrackingLost, WindowStats
 from dimslam.tracker.photometric import (
     LevelProblem,
-    grey,
+    channels,
     huber_mean,
     level_uv,
     pyramid,
@@ -80,7 +80,8 @@ class Reference:
     Attributes:
         keyframe: the keyframe (its current pose places the points in the world).
         p_k: `(N, 3)` points in the keyframe's camera frame.
-        intensity: per pyramid level, `(N,)` the keyframe's grey value at each point.
+        intensity: per pyramid level, `(N, C)` the keyframe's grey value (C = 1) or colour
+            (C = 3, `tracker.colour`) at each point.
         version: the map version the depth was rendered from.
         texture: the keyframe image's mean absolute gradient (`texture`).
     """
@@ -170,9 +171,9 @@ class DirectTracker:
         assert kf.rgb is not None
         good = torch.isfinite(depth) & (depth > 0)
         uv, depth = uv[good], depth[good]
-        images = pyramid(grey(kf.rgb), len(self.cameras))
+        images = pyramid(channels(kf.rgb, self.cfg.colour), len(self.cameras))
         intensity = [
-            losses.sample_images(img[..., None].expand(-1, -1, 3), level_uv(uv, lv))[:, 0]
+            losses.sample_images(img.expand(-1, -1, 3), level_uv(uv, lv))[:, : img.shape[-1]]
             for lv, img in enumerate(images)
         ]
         return Reference(
@@ -310,9 +311,10 @@ class DirectTracker:
         return self._accept(frame, best)
 
     def images(self, frame: FrameState) -> list[torch.Tensor]:
-        """The frame's grey pyramid with the gradients, finest first."""
+        """The frame's pyramid (grey or colour) with the gradients, finest first."""
         assert frame.rgb is not None
-        return [with_gradients(img) for img in pyramid(grey(frame.rgb), len(self.cameras))]
+        images = pyramid(channels(frame.rgb, self.cfg.colour), len(self.cameras))
+        return [with_gradients(img) for img in images]
 
     def _brightness(self, refs: list[Reference]) -> np.ndarray:
         """`(R, 2)` the last gain and offset of each reference against the frames."""
@@ -326,7 +328,7 @@ class DirectTracker:
         )
         # The brightness model works on intensities about each reference's mean, so that the
         # gain scales contrast only and the offset carries the shift of the mean.
-        mean = torch.cat([r.intensity[0].mean().expand(len(r.p_k)) for r in refs])
+        mean = torch.cat([r.intensity[0].mean(0).expand(len(r.p_k), -1) for r in refs])
         p_w = torch.cat([r.world() for r in refs])
         return _Points(order, p_w[order], ref_of[order], mean[order])
 
@@ -384,7 +386,8 @@ class DirectTracker:
         n_valid = int(check.valid.sum())
         rv = check.r[check.valid]
         residual = math.sqrt(2 * huber_mean(rv, self.cfg.fit)) if n_valid else math.inf
-        inliers = _best_fit(check.r.abs() <= self.cfg.fit, check.valid, finest.ref_of, len(refs))
+        fits = check.r.abs().mean(dim=1) <= self.cfg.fit  # a point's channels on average
+        inliers = _best_fit(fits, check.valid, finest.ref_of, len(refs))
         stats.loss = stats.residual = residual
         stats.inliers = inliers
         if not (np.isfinite(T_cw).all() and math.isfinite(residual)):

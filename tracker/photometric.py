@@ -44,27 +44,35 @@ def grey(rgb: torch.Tensor) -> torch.Tensor:
     return rgb @ rgb.new_tensor(GREY)
 
 
+def channels(rgb: torch.Tensor, colour: bool) -> torch.Tensor:
+    """`(H, W, C)`: what a solve compares of an `(H, W, 3)` image: its colours (C = 3) or its
+    grey values (C = 1)."""
+    return rgb if colour else grey(rgb)[..., None]
+
+
 def pyramid(image: torch.Tensor, levels: int) -> list[torch.Tensor]:
-    """`levels` grey images, each half the size of the one before (2x2 means)."""
+    """`levels` `(H, W, C)` images, each half the size of the one before (2x2 means)."""
     out = [image]
     for _ in range(levels - 1):
-        if min(out[-1].shape) < 16:
+        if min(out[-1].shape[:2]) < 16:
             break
-        out.append(F.avg_pool2d(out[-1][None, None], 2)[0, 0])
+        out.append(F.avg_pool2d(out[-1].permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0))
     return out
 
 
 def with_gradients(image: torch.Tensor) -> torch.Tensor:
-    """`(H, W, 3)`: the grey image and its central differences along u and v."""
-    padded = F.pad(image[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    """`(H, W, 3C)` of an `(H, W, C)` image: its values, then their central differences
+    along u, then along v."""
+    padded = F.pad(image.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0]
+    padded = padded.permute(1, 2, 0)
     gu = 0.5 * (padded[1:-1, 2:] - padded[1:-1, :-2])
     gv = 0.5 * (padded[2:, 1:-1] - padded[:-2, 1:-1])
-    return torch.stack([image, gu, gv], dim=-1)
+    return torch.cat([image, gu, gv], dim=-1)
 
 
 def texture(image: torch.Tensor) -> float:
     """Mean absolute gradient of a `with_gradients` image: how much there is to align."""
-    return float(image[..., 1:].abs().mean())
+    return float(image[..., image.shape[-1] // 3 :].abs().mean())
 
 
 def level_uv(uv: torch.Tensor, level: int) -> torch.Tensor:
@@ -77,17 +85,20 @@ def level_uv(uv: torch.Tensor, level: int) -> torch.Tensor:
 class Evaluation:
     """The residuals of one pose and brightness, with what their Jacobian needs."""
 
-    r: torch.Tensor
-    valid: torch.Tensor
-    w: torch.Tensor
+    r: torch.Tensor  # (N, C)
+    valid: torch.Tensor  # (N,)
+    w: torch.Tensor  # (N, C)
     cost: float
     p_c: torch.Tensor
     inv_z: torch.Tensor
-    gradient: torch.Tensor  # (2, N): the frame's intensity gradient along u and v
+    gradient: torch.Tensor  # (2, N, C): the frame's intensity gradient along u and v
 
 
 class LevelProblem:
     """One pyramid level of a solve: the frame's image and the points' constants.
+
+    The image is a `with_gradients` one of C channels; each point has C intensities (`centred`
+    and `mean`, `(N, C)`), each a residual; a reference's brightness is shared by its channels.
 
     Written for few operations per iteration (each torch call costs microseconds on a CPU,
     whatever its size): the pose and brightness live in numpy, the per-point work in one pass
@@ -105,7 +116,7 @@ class LevelProblem:
         n_refs: int,
         cfg: TrackerConfig,
     ) -> None:
-        self.chw = image.permute(2, 0, 1)[None].contiguous()  # (1, 3, H, W)
+        self.chw = image.permute(2, 0, 1)[None].contiguous()  # (1, 3C, H, W)
         h, w = image.shape[:2]
         self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
         self.box = (MARGIN - 0.5, w - 0.5 - MARGIN, MARGIN - 0.5, h - 0.5 - MARGIN)
@@ -118,8 +129,9 @@ class LevelProblem:
         self.n_refs = n_refs
         self.affine = cfg.affine
         if self.affine:  # columns: the gains of the references, then their offsets
-            onehot = F.one_hot(ref_of, n_refs).to(p_w.dtype)
-            self.A = torch.cat([-centred[:, None] * onehot, -onehot], dim=1)
+            onehot = F.one_hot(ref_of, n_refs).to(p_w.dtype)[:, None, :]  # (N, 1, R)
+            onehot = onehot.expand(-1, centred.shape[1], -1)  # (N, C, R)
+            self.A = torch.cat([-centred[..., None] * onehot, -onehot], dim=2).flatten(0, 1)
 
     def evaluate(self, T_cw: np.ndarray, ab: np.ndarray) -> Evaluation:
         R = torch.from_numpy(T_cw[:3, :3]).to(self.p_w.dtype)
@@ -134,33 +146,37 @@ class LevelProblem:
         sx, sy = self.scale
         grid = torch.stack([u * sx - 1.0, v * sy - 1.0], dim=-1).view(1, 1, -1, 2)
         sample = F.grid_sample(self.chw, grid, mode="bilinear", align_corners=True)[0, :, 0]
-        gains = torch.from_numpy(ab[:, 0]).to(self.p_w.dtype)[self.ref_of]
-        offsets = torch.from_numpy(ab[:, 1]).to(self.p_w.dtype)[self.ref_of]
-        r = sample[0] - (gains * self.centred + self.mean + offsets)
+        c = self.centred.shape[1]
+        gains = torch.from_numpy(ab[:, 0]).to(self.p_w.dtype)[self.ref_of, None]
+        offsets = torch.from_numpy(ab[:, 1]).to(self.p_w.dtype)[self.ref_of, None]
+        r = sample[:c].T - (gains * self.centred + self.mean + offsets)  # (N, C)
         k = self.huber
         a = r.abs()
         rho = huber(r, k)
         # Points out of view count as outliers at the threshold, so leaving it earns nothing.
-        rho = torch.where(valid, rho, torch.full_like(rho, 0.5 * k * k))
-        w = torch.where(a <= k, torch.ones_like(a), k / a.clamp_min(1e-12)) * valid
+        rho = torch.where(valid[:, None], rho, torch.full_like(rho, 0.5 * k * k))
+        w = torch.where(a <= k, torch.ones_like(a), k / a.clamp_min(1e-12)) * valid[:, None]
         drift = (ab - PRIOR_BRIGHTNESS).reshape(-1)
         cost = float(rho.mean()) + 0.5 * BRIGHTNESS_PRIOR * float(drift @ drift) * self.affine
-        return Evaluation(r, valid, w, cost, p_c, inv_z, sample[1:])
+        gradient = sample[c:].view(2, c, -1).transpose(1, 2)
+        return Evaluation(r, valid, w, cost, p_c, inv_z, gradient)
 
     def normal_equations(self, e: Evaluation, ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`H` and `g` of the weighted least squares in (pose increment, gains, offsets)."""
-        x, y, z = e.p_c.unbind(1)
-        gu = e.gradient[0] * self.fx * e.inv_z
-        gv = e.gradient[1] * self.fy * e.inv_z
-        gz = -(gu * x + gv * y) * e.inv_z  # d r / d p_c = (gu, gv, gz)
+        x, y, z = e.p_c[:, None, :].unbind(2)  # (N, 1) each, against (N, C) gradients
+        inv_z = e.inv_z[:, None]
+        gu = e.gradient[0] * self.fx * inv_z
+        gv = e.gradient[1] * self.fy * inv_z
+        gz = -(gu * x + gv * y) * inv_z  # d r / d p_c = (gu, gv, gz)
         # Left increment of T_cw: d p_c / d v = I, d p_c / d w = -[p_c]x.
-        J = torch.stack([gu, gv, gz, y * gz - z * gv, z * gu - x * gz, x * gv - y * gu], dim=1)
+        J = torch.stack([gu, gv, gz, y * gz - z * gv, z * gu - x * gz, x * gv - y * gu], dim=2)
+        J = J.flatten(0, 1)  # (N C, 6)
         if self.affine:
             J = torch.cat([J, self.A], dim=1)
-        Jw = J * e.w[:, None]
-        n = len(e.r)
+        Jw = J * e.w.reshape(-1, 1)
+        n = e.r.numel()
         H = (Jw.T @ J).double().numpy() / n
-        g = (Jw.T @ e.r).double().numpy() / n
+        g = (Jw.T @ e.r.reshape(-1)).double().numpy() / n
         if self.affine:
             H[6:, 6:] += BRIGHTNESS_PRIOR * np.eye(H.shape[0] - 6)
             g[6:] += BRIGHTNESS_PRIOR * (ab - PRIOR_BRIGHTNESS).T.reshape(-1)

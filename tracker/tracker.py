@@ -77,6 +77,11 @@ class TrackerConfig:
         "lost checks' robust residual and share of inliers are measured with it.",
     )
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
+    colour: bool = option(
+        False,
+        "direct: solve on the three colour channels (three residuals per point, one "
+        "brightness per reference) instead of the grey image.",
+    )
     lost_residual: float = option(
         0.1, "direct: robust residual RMS above which a frame counts as lost."
     )

@@ -2,6 +2,7 @@
 changes, says when it is lost, and decides keyframes without rendering."""
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -12,6 +13,7 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.render import RenderConfig
 from dimslam.common.optim.window import FrameState, TrackingLost
 from dimslam.tracker.direct import DirectTracker, _best_fit
+from dimslam.tracker.photometric import grey, texture
 from dimslam.tracker.tracker import TrackerConfig
 
 CAM = Camera(160, 120, 125.0, 125.0, 79.5, 59.5)
@@ -48,6 +50,32 @@ def test_a_pose_4_cm_and_2_degrees_off_comes_back_to_a_millimetre():
     assert dt < 1e-3 and dr < 1e-3, (dt, dr)
     assert result.window == (0, 1) and 0 < result.stats.iterations <= 20
     assert result.stats.inliers > 0.9
+
+
+def test_colour_aligns_a_wall_whose_grey_image_is_flat():
+    # The wall's colours less their grey: stripes along one direction (the pattern's
+    # colour-independent part is in the grey), so those of the pattern turned by 90 degrees
+    # about the wall's normal are added.
+    turn = pose.exp_se3(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, math.pi / 2]))
+
+    def isoluminant(T: torch.Tensor) -> torch.Tensor:
+        images = [textured_wall_image(T, CAM), textured_wall_image(pose.compose(turn, T), CAM)]
+        return 0.5 + sum(1.5 * (im - grey(im)[..., None]) for im in images)  # grey 0.5
+
+    guess = pose.retract(TRUTH, torch.tensor([0.03, -0.02, 0.015, 0.02, -0.015, 0.01]))
+    ends = {}
+    for colour in (False, True):
+        t = solver(colour=colour)
+        t.map_changed(wall, [FrameState(0, 0.0, isoluminant(KF), KF, keyframe=True)], version=1)
+        frame = FrameState(1, 0.1, isoluminant(TRUTH), guess.clone())
+        seen = texture(t.images(frame)[0])
+        assert seen > 5e-3 if colour else seen < 1e-6, seen
+        t.track(wall, [frame], [])
+        ends[colour] = error(frame.T_wc, TRUTH)
+    dt, dr = ends[True]
+    assert dt < 1e-3 and dr < 1e-3, ends
+    # In grey only float rounding is left to align (it ends millimetres off).
+    assert ends[False][0] > 3 * dt, ends
 
 
 def test_a_change_of_exposure_is_absorbed_by_the_brightness_model():
