@@ -22,7 +22,10 @@ With `--truth`, each child whose tracker is the direct one also prints, for ever
 tracks, whether the solve found the minimum of its own cost or the cost itself is wrong: the
 cost at its solution and at the true pose (placed in the run's world by the Sim(3) of the
 `TRUTH_FRAMES` frames before F), how far apart the two are, and where a solve started at
-the true pose ends. The line does not change the run.
+the true pose ends. A child whose tracker is the Adam one prints, for every frame, how far
+its pose is from the truth and where a direct solve (the variant's direct settings, its own
+references and random stream) ends when started at that pose: whether the direct cost's
+minimum lies where the Adam tracker stopped. The lines do not change the run.
 
 A variant is `key=value` overrides joined by `;`, keys in the `tracker.` and `loss.`
 sections (the loss settings reach the Adam window tracker only; the mapper keeps the run's
@@ -52,6 +55,7 @@ from dimslam.common.eval.evaluation import Sim3, associate, evaluate_trajectory
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, write_tum
+from dimslam.common.optim.window import FrameState, TrackingLost
 from dimslam.common.options import apply_overrides
 from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
@@ -163,6 +167,51 @@ def watch_truth(
     tracker.track = watched
 
 
+def watch_adam(slam: Slam, truth: Callable[[float], np.ndarray | None], scale: float) -> None:
+    """Print, for each frame the Adam tracker tracks, its pose's distance to the true pose,
+    and where a direct solve started at its pose ends (its distance to both, the direct cost
+    at both ends); the direct solver is a shadow with references and a random stream of its
+    own, so the run itself is left as it was."""
+    cfg = apply_overrides(slam.cfg, {"tracker.solver": "direct"})
+    shadow = DirectTracker(cfg.tracker, cfg.render, slam.camera, torch.Generator().manual_seed(0))
+    tracker = slam.front.tracker
+    track = tracker.track
+
+    def watched(field, local, keyframes):
+        result = track(field, local, keyframes)
+        frame = local[-1]
+        true = truth(frame.timestamp)
+        if true is None:
+            return result
+        shadow.map_changed(field, slam.front.keyframes, slam.back.rounds)
+        refs, _ = shadow.choose(field, slam.front.keyframes, frame.T_wc)
+        adam = frame.T_wc.double().numpy()
+        line = f"  {frame.index}: Adam {_apart(adam, true, scale)} from the truth; "
+        if not refs:
+            print(line + "no reference for a direct solve", flush=True)
+            return result
+        images = shadow.images(frame)
+        start = FrameState(frame.index, frame.timestamp, frame.rgb, frame.T_wc.clone())
+        try:
+            end = shadow.solve(start, refs, images).T_wc.double().numpy()
+        except TrackingLost as e:
+            print(line + f"a direct solve from it is lost ({e})", flush=True)
+            return result
+        problem = shadow._problem(images, refs, shadow._points(refs), 0)
+        ab = shadow._brightness(refs)
+        cost = {k: 1e4 * problem.evaluate(np.linalg.inv(T), ab).cost for k, T in
+                (("adam", adam), ("end", end))}  # fmt: skip
+        print(
+            line + f"a direct solve from it ends {_apart(end, adam, scale)} from it,"
+            f" {_apart(end, true, scale)} from the truth; direct cost {cost['adam']:.3f} at"
+            f" the Adam pose, {cost['end']:.3f} at the end",
+            flush=True,
+        )
+        return result
+
+    tracker.track = watched
+
+
 def _apart(a: np.ndarray, b: np.ndarray, scale: float) -> str:
     turn = math.degrees(pose.rotation_angle(torch.from_numpy(a[:3, :3].T @ b[:3, :3])))
     cm = 100 * np.linalg.norm(a[:3, 3] - b[:3, 3]) / scale
@@ -202,7 +251,8 @@ def main() -> None:
     p.add_argument(
         "--truth",
         action="store_true",
-        help="per frame of a direct variant: its cost at the solution and at the true pose",
+        help="per frame: a direct variant's cost at its solution and at the true pose; "
+        "where a direct solve from an Adam variant's pose ends",
     )
     args = p.parse_args()
     try:
@@ -237,6 +287,8 @@ def main() -> None:
                 switch(slam, overrides)
                 if args.truth and isinstance(slam.front.tracker, DirectTracker):
                     watch_truth(slam.front.tracker, *truth_in_run(slam, gt, args.at))
+                elif args.truth:
+                    watch_adam(slam, *truth_in_run(slam, gt, args.at))
                 for frame in rest:
                     slam.add(frame)
                 slam.finish()
