@@ -249,7 +249,7 @@ class DirectTracker:
         refs, rendered = self.choose(field, keyframes, frame.T_wc)
         if not refs:
             raise TrackingLost(f"frame {frame.index}: no rendered keyframe overlaps its view")
-        solved = self.solve(frame, refs, self.images(frame))
+        solved = self.solve(frame, refs, self.images(frame), hold=self.cfg.hold)
         solved.stats.rendered = rendered
         return self._accept(frame, solved)
 
@@ -352,10 +352,15 @@ class DirectTracker:
         )
 
     def solve(
-        self, frame: FrameState, refs: list[Reference], images: list[torch.Tensor]
+        self,
+        frame: FrameState,
+        refs: list[Reference],
+        images: list[torch.Tensor],
+        hold: float = 0.0,
     ) -> _Solved:
         """Levenberg-Marquardt from `frame.T_wc` against `refs`, coarse to fine; checked but
-        not yet applied (`_accept`).
+        not yet applied (`_accept`). `hold` (`tracker.hold`) keeps the directions the data
+        leave loose near the start (`LevelProblem.minimize`).
 
         Raises:
             TrackingLost: the solution is non-finite, sees too few points, jumped too far
@@ -370,13 +375,15 @@ class DirectTracker:
         pts = self._points(refs)
         ab = self._brightness(refs)
         T_cw = np.linalg.inv(frame.T_wc.double().cpu().numpy())
+        anchor = T_cw.copy()
         stats = DirectStats(references=tuple(r.keyframe.index for r in refs), points=len(pts.p_w))
         budget = self.cfg.iters
         finest = None
         for level in reversed(range(len(images))):
             finest = self._problem(images, refs, pts, level)
             # A fair share of the iterations left; what a level leaves unused passes on.
-            T_cw, ab, used, cost = finest.minimize(T_cw, ab, max(1, budget // (level + 1)))
+            share = max(1, budget // (level + 1))
+            T_cw, ab, used, cost = finest.minimize(T_cw, ab, share, hold, anchor)
             budget -= used
             stats.per_level.append(used)
             stats.iterations += used

@@ -183,15 +183,41 @@ class LevelProblem:
         return H, g
 
     def minimize(
-        self, T_cw: np.ndarray, ab: np.ndarray, budget: int
+        self,
+        T_cw: np.ndarray,
+        ab: np.ndarray,
+        budget: int,
+        hold: float = 0.0,
+        anchor: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, int, float]:
-        """Levenberg-Marquardt; returns pose, brightness, iterations used and final cost."""
+        """Levenberg-Marquardt; returns pose, brightness, iterations used and final cost.
+
+        With `hold` > 0 and an `anchor` (a `T_cw`, the motion guess), the cost also holds the
+        pose near the anchor: `hold` times the data's own curvature of each of the six pose
+        directions at the start, so a direction the data fix firmly moves freely and one
+        they leave loose (on a narrow view a turn and a sideways move look alike) stays near
+        the guess, as a few small steps from the guess would leave it.
+        """
         damping = 1e-3
         current = self.evaluate(T_cw, ab)
+        weight = np.zeros(6)
+        if hold > 0 and anchor is not None:
+            weight = hold * np.maximum(np.diag(self.normal_equations(current, ab)[0])[:6], 0.0)
+
+        def total(e: Evaluation, T: np.ndarray) -> float:
+            if not weight.any():
+                return e.cost
+            d = _deviation(T, anchor)
+            return e.cost + 0.5 * float(weight @ (d * d))
+
+        cost = total(current, T_cw)
         used = 0
         while used < budget:
             used += 1
             H, g = self.normal_equations(current, ab)
+            if weight.any():
+                H[:6, :6] += np.diag(weight)
+                g[:6] += weight * _deviation(T_cw, anchor)
             H_lm = H + damping * np.diag(np.maximum(np.diag(H), 1e-12))
             try:
                 step = -np.linalg.solve(H_lm, g)
@@ -206,8 +232,9 @@ class LevelProblem:
                 ab_new[:, 0] = ab_new[:, 0].clip(*GAIN_RANGE)
                 ab_new[:, 1] = ab_new[:, 1].clip(*OFFSET_RANGE)
             candidate = self.evaluate(T_new, ab_new)
-            if candidate.cost <= current.cost:
-                T_cw, ab, current = T_new, ab_new, candidate
+            new_cost = total(candidate, T_new)
+            if new_cost <= cost:
+                T_cw, ab, current, cost = T_new, ab_new, candidate, new_cost
                 damping = max(damping * 0.5, 1e-6)
                 if max(np.abs(step[:6])) < self.converged:
                     break
@@ -216,6 +243,16 @@ class LevelProblem:
                 if damping > 1e4:
                     break
         return T_cw, ab, used, current.cost
+
+
+def _deviation(T_cw: np.ndarray, anchor: np.ndarray | None) -> np.ndarray:
+    """The twist (translation, rotation vector; first order) that takes `anchor` to `T_cw`
+    as a left increment."""
+    assert anchor is not None
+    D = T_cw @ np.linalg.inv(anchor)
+    R = D[:3, :3]
+    w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return np.concatenate([D[:3, 3], w])
 
 
 def huber(r: torch.Tensor, k: float) -> torch.Tensor:

@@ -77,6 +77,11 @@ class TrackerConfig:
         "lost checks' robust residual and share of inliers are measured with it.",
     )
     affine: bool = option(True, "direct: estimate affine brightness per reference keyframe.")
+    hold: float = option(
+        0.0,
+        "direct: hold the pose near the motion guess by this share of the data's curvature "
+        "per pose direction (0: off): a direction the images leave loose stays at the guess.",
+    )
     colour: bool = option(
         False,
         "direct: solve on the three colour channels (three residuals per point, one "
