@@ -30,8 +30,9 @@ minimum lies where the Adam tracker stopped. The lines do not change the run.
 A variant is `key=value` overrides joined by `;`, keys in the `tracker.` and `loss.`
 sections (the loss settings reach the Adam window tracker only; the mapper keeps the run's
 settings); '' is the run as it is. A variant of the same solver swaps its settings in and
-keeps what the solver cached; another solver starts fresh at F (the direct one renders its
-references from the map at F). Children run one after another. POSIX only (fork).
+keeps what the solver cached; another solver (or the direct one comparing colours instead of
+grey, or back) starts fresh at F (the direct one renders its references from the map at F).
+Children run one after another. POSIX only (fork).
 """
 
 from __future__ import annotations
@@ -87,6 +88,8 @@ def switch(slam: Slam, overrides: dict[str, str]) -> None:
     if cfg.tracker.levels != slam.cfg.tracker.levels:
         raise ValueError("tracker.levels sets a solver's pyramid when it is built: not here")
     same = (cfg.tracker.solver == "direct") == isinstance(front.tracker, DirectTracker)
+    # Cached references hold grey levels or colours: another choice renders them afresh.
+    same = same and cfg.tracker.colour == slam.cfg.tracker.colour
     front.cfg = cfg
     if same:
         front.tracker.cfg = cfg.tracker

@@ -20,7 +20,8 @@ def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(
     write_sequence(scene, frames=18, width=160, height=120, seed=0)
     figures = tmp_path / "figures.json"
     argv = ["branch.py", str(scene), "--preset", "tiny", "--at", "12", "--out", str(tmp_path)]
-    variants = ["", "", "tracker.solver=adam;loss.patch_sizes=1"]
+    # The last compares colours where the run compared grey: its references are rendered anew.
+    variants = ["", "", "tracker.solver=adam;loss.patch_sizes=1", "tracker.colour=true"]
     monkeypatch.setattr(
         "sys.argv", [*argv, *(f"--variant={v}" for v in variants), "--json", str(figures)]
     )
