@@ -200,9 +200,10 @@ class LevelProblem:
         """
         damping = 1e-3
         current = self.evaluate(T_cw, ab)
+        equations = self.normal_equations(current, ab)  # of `current`; a rejected step keeps it
         weight = np.zeros(6)
         if hold > 0 and anchor is not None:
-            weight = hold * np.maximum(np.diag(self.normal_equations(current, ab)[0])[:6], 0.0)
+            weight = hold * np.maximum(np.diag(equations[0])[:6], 0.0)
 
         def total(e: Evaluation, T: np.ndarray) -> float:
             if not weight.any():
@@ -214,7 +215,7 @@ class LevelProblem:
         used = 0
         while used < budget:
             used += 1
-            H, g = self.normal_equations(current, ab)
+            H, g = equations[0].copy(), equations[1].copy()
             if weight.any():
                 H[:6, :6] += np.diag(weight)
                 g[:6] += weight * _deviation(T_cw, anchor)
@@ -238,6 +239,8 @@ class LevelProblem:
                 damping = max(damping * 0.5, 1e-6)
                 if max(np.abs(step[:6])) < self.converged:
                     break
+                if used < budget:
+                    equations = self.normal_equations(current, ab)
             else:
                 damping *= 8.0
                 if damping > 1e4:
