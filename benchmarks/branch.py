@@ -56,11 +56,12 @@ from dimslam.common.eval.evaluation import Sim3, associate, evaluate_trajectory
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, write_tum
+from dimslam.common.map.render import FieldFn
 from dimslam.common.optim.window import FrameState, TrackingLost
 from dimslam.common.options import apply_overrides
 from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
-from dimslam.tracker.tracker import Tracker
+from dimslam.tracker.tracker import Tracker, TrackResult
 
 SECTIONS = ("tracker.", "loss.")
 TRUTH_FRAMES = 30
@@ -134,20 +135,33 @@ def truth_in_run(
     return truth, s
 
 
+def _after_each_frame(
+    tracker: DirectTracker | Tracker,
+    truth: Callable[[float], np.ndarray | None],
+    report: Callable[[FieldFn, FrameState, TrackResult, np.ndarray], None],
+) -> None:
+    """Call `report(field, frame, result, true pose)` after each frame `tracker` tracks that
+    the ground truth has."""
+    track = tracker.track
+
+    def watched(field, local, keyframes):
+        result = track(field, local, keyframes)
+        true = truth(local[-1].timestamp)
+        if true is not None:
+            report(field, local[-1], result, true)
+        return result
+
+    tracker.track = watched
+
+
 def watch_truth(
     tracker: DirectTracker, truth: Callable[[float], np.ndarray | None], scale: float
 ) -> None:
     """Print, for each frame `tracker` tracks, its solve's cost at the solution and at the
     true pose, the distance between them and where a solve from the true pose ends (finest
     level, the solution's references and brightness); the run itself is left as it was."""
-    track = tracker.track
 
-    def watched(field, local, keyframes):
-        result = track(field, local, keyframes)
-        frame = local[-1]
-        true = truth(frame.timestamp)
-        if true is None:
-            return result
+    def report(field, frame, result, true):
         state = tracker.generator.get_state()  # the check draws its own point order
         refs = [tracker.references[i] for i in result.stats.references]
         problem = tracker._problem(tracker.images(frame), refs, tracker._points(refs), 0)
@@ -165,9 +179,8 @@ def watch_truth(
             f" {list(result.stats.references)}",
             flush=True,
         )
-        return result
 
-    tracker.track = watched
+    _after_each_frame(tracker, truth, report)
 
 
 def watch_adam(slam: Slam, truth: Callable[[float], np.ndarray | None], scale: float) -> None:
@@ -177,29 +190,22 @@ def watch_adam(slam: Slam, truth: Callable[[float], np.ndarray | None], scale: f
     own, so the run itself is left as it was."""
     cfg = apply_overrides(slam.cfg, {"tracker.solver": "direct"})
     shadow = DirectTracker(cfg.tracker, cfg.render, slam.camera, torch.Generator().manual_seed(0))
-    tracker = slam.front.tracker
-    track = tracker.track
 
-    def watched(field, local, keyframes):
-        result = track(field, local, keyframes)
-        frame = local[-1]
-        true = truth(frame.timestamp)
-        if true is None:
-            return result
+    def report(field, frame, result, true):
         shadow.map_changed(field, slam.front.keyframes, slam.back.rounds)
         refs, _ = shadow.choose(field, slam.front.keyframes, frame.T_wc)
         adam = frame.T_wc.double().numpy()
         line = f"  {frame.index}: Adam {_apart(adam, true, scale)} from the truth; "
         if not refs:
             print(line + "no reference for a direct solve", flush=True)
-            return result
+            return
         images = shadow.images(frame)
         start = FrameState(frame.index, frame.timestamp, frame.rgb, frame.T_wc.clone())
         try:
             end = shadow.solve(start, refs, images).T_wc.double().numpy()
         except TrackingLost as e:
             print(line + f"a direct solve from it is lost ({e})", flush=True)
-            return result
+            return
         problem = shadow._problem(images, refs, shadow._points(refs), 0)
         ab = shadow._brightness(refs)
         cost = {k: 1e4 * problem.evaluate(np.linalg.inv(T), ab).cost for k, T in
@@ -210,9 +216,8 @@ def watch_adam(slam: Slam, truth: Callable[[float], np.ndarray | None], scale: f
             f" the Adam pose, {cost['end']:.3f} at the end",
             flush=True,
         )
-        return result
 
-    tracker.track = watched
+    _after_each_frame(slam.front.tracker, truth, report)
 
 
 def _apart(a: np.ndarray, b: np.ndarray, scale: float) -> str:
