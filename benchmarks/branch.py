@@ -188,7 +188,7 @@ def watch_adam(slam: Slam, truth: Callable[[float], np.ndarray | None], scale: f
     and where a direct solve started at its pose ends (its distance to both, the direct cost
     at both ends); the direct solver is a shadow with references and a random stream of its
     own, so the run itself is left as it was."""
-    cfg = apply_overrides(slam.cfg, {"tracker.solver": "direct"})
+    cfg = apply_overrides(slam.front.cfg, {"tracker.solver": "direct"})  # the variant's
     shadow = DirectTracker(cfg.tracker, cfg.render, slam.camera, torch.Generator().manual_seed(0))
 
     def report(field, frame, result, true):
@@ -202,7 +202,7 @@ def watch_adam(slam: Slam, truth: Callable[[float], np.ndarray | None], scale: f
         images = shadow.images(frame)
         start = FrameState(frame.index, frame.timestamp, frame.rgb, frame.T_wc.clone())
         try:
-            end = shadow.solve(start, refs, images).T_wc.double().numpy()
+            end = shadow.solve(start, refs, images, hold=cfg.tracker.hold).T_wc.double().numpy()
         except TrackingLost as e:
             print(line + f"a direct solve from it is lost ({e})", flush=True)
             return

@@ -201,24 +201,26 @@ class LevelProblem:
         damping = 1e-3
         current = self.evaluate(T_cw, ab)
         equations = self.normal_equations(current, ab)  # of `current`; a rejected step keeps it
-        weight = np.zeros(6)
+        weight, from_anchor = np.zeros(6), np.eye(4)
         if hold > 0 and anchor is not None:
             weight = hold * np.maximum(np.diag(equations[0])[:6], 0.0)
+            from_anchor = np.linalg.inv(anchor)
 
         def total(e: Evaluation, T: np.ndarray) -> float:
             if not weight.any():
                 return e.cost
-            d = _deviation(T, anchor)
+            d = _deviation(T, from_anchor)
             return e.cost + 0.5 * float(weight @ (d * d))
 
         cost = total(current, T_cw)
         used = 0
         while used < budget:
             used += 1
-            H, g = equations[0].copy(), equations[1].copy()
+            H, g = equations
             if weight.any():
+                H, g = H.copy(), g.copy()
                 H[:6, :6] += np.diag(weight)
-                g[:6] += weight * _deviation(T_cw, anchor)
+                g[:6] += weight * _deviation(T_cw, from_anchor)
             H_lm = H + damping * np.diag(np.maximum(np.diag(H), 1e-12))
             try:
                 step = -np.linalg.solve(H_lm, g)
@@ -248,11 +250,10 @@ class LevelProblem:
         return T_cw, ab, used, current.cost
 
 
-def _deviation(T_cw: np.ndarray, anchor: np.ndarray | None) -> np.ndarray:
-    """The twist (translation, rotation vector; first order) that takes `anchor` to `T_cw`
-    as a left increment."""
-    assert anchor is not None
-    D = T_cw @ np.linalg.inv(anchor)
+def _deviation(T_cw: np.ndarray, from_anchor: np.ndarray) -> np.ndarray:
+    """The twist (translation, rotation vector; first order) that takes the anchor to `T_cw`
+    as a left increment (`from_anchor`: the anchor's inverse)."""
+    D = T_cw @ from_anchor
     R = D[:3, :3]
     w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return np.concatenate([D[:3, 3], w])
