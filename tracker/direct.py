@@ -249,7 +249,8 @@ class DirectTracker:
         refs, rendered = self.choose(field, keyframes, frame.T_wc)
         if not refs:
             raise TrackingLost(f"frame {frame.index}: no rendered keyframe overlaps its view")
-        solved = self.solve(frame, refs, self.images(frame), hold=self.cfg.hold)
+        views = list({id(f): f for f in [*local, *(r.keyframe for r in refs)]}.values())
+        solved = self.solve(frame, refs, self.images(frame), self.cfg.hold, views)
         solved.stats.rendered = rendered
         return self._accept(frame, solved)
 
@@ -320,17 +321,39 @@ class DirectTracker:
         """`(R, 2)` the last gain and offset of each reference against the frames."""
         return np.array([self.brightness.get(r.keyframe.index, (1.0, 0.0)) for r in refs])
 
-    def _points(self, refs: list[Reference]) -> _Points:
-        """The references' points in one random order (the coarse levels use its first)."""
-        order = torch.randperm(sum(len(r.p_k) for r in refs), generator=self.generator)
+    def _points(self, refs: list[Reference], views: list[FrameState] | None = None) -> _Points:
+        """The references' points in one random order (the coarse levels use its first);
+        with `views`, only those that more than `tracker.min_views` of them see (`_seen`)."""
+        p_w = torch.cat([r.world() for r in refs])
         ref_of = torch.cat(
             [torch.full((len(r.p_k),), k, dtype=torch.long) for k, r in enumerate(refs)]
         )
+        order = torch.randperm(len(p_w), generator=self.generator)
+        if views is not None and self.cfg.min_views > 0:
+            keep = self._seen(p_w, ref_of, refs, views)
+            order = order[keep[order]]
         # The brightness model works on intensities about each reference's mean, so that the
         # gain scales contrast only and the offset carries the shift of the mean.
         mean = torch.cat([r.intensity[0].mean(0).expand(len(r.p_k), -1) for r in refs])
-        p_w = torch.cat([r.world() for r in refs])
         return _Points(order, p_w[order], ref_of[order], mean[order])
+
+    def _seen(
+        self,
+        p_w: torch.Tensor,
+        ref_of: torch.Tensor,
+        refs: list[Reference],
+        views: list[FrameState],
+    ) -> torch.Tensor:
+        """`(N,)` which points land inside more than `tracker.min_views` of `views` (at most
+        all but two of them) other than their own reference's frame: the paper's visibility
+        mask over the tracking window. A part of the scene only the newest frames have seen
+        (where the map has had the least time to form) does not pull the pose."""
+        T_cw = pose.invert(torch.stack([v.T_wc for v in views]))  # (V, 4, 4)
+        uv, z = self.camera.project(pose.transform_points(T_cw, p_w))  # (V, N)
+        inside = (z > 0) & self.camera.inside(uv)
+        own = torch.tensor([[v is r.keyframe for r in refs] for v in views])[:, ref_of]
+        count = (inside & ~own).sum(0)
+        return count > min(self.cfg.min_views, len(views) - 2)
 
     def _problem(
         self, images: list[torch.Tensor], refs: list[Reference], pts: _Points, level: int
@@ -357,10 +380,12 @@ class DirectTracker:
         refs: list[Reference],
         images: list[torch.Tensor],
         hold: float = 0.0,
+        views: list[FrameState] | None = None,
     ) -> _Solved:
         """Levenberg-Marquardt from `frame.T_wc` against `refs`, coarse to fine; checked but
         not yet applied (`_accept`). `hold` (`tracker.hold`) keeps the directions the data
-        leave loose near the start (`LevelProblem.minimize`).
+        leave loose near the start (`LevelProblem.minimize`); with `views` (the frame among
+        them, at its start) only the points enough of them see count (`_seen`).
 
         Raises:
             TrackingLost: the solution is non-finite, sees too few points, jumped too far
@@ -372,7 +397,7 @@ class DirectTracker:
                 f"frame {frame.index}: {seen:.0%} of the keyframes' texture (covered, blurred "
                 "or dark)"
             )
-        pts = self._points(refs)
+        pts = self._points(refs, views)
         ab = self._brightness(refs)
         T_cw = np.linalg.inv(frame.T_wc.double().cpu().numpy())
         anchor = T_cw.copy()

@@ -68,6 +68,12 @@ class TrackerConfig:
         "direct: of the keyframes a frame is tracked against, how many whose depth an older "
         "map rendered are rendered again from the newest (the stalest first).",
     )
+    min_views: int = option(
+        0,
+        "direct: a reference point counts where it lands inside more than this many of the "
+        "window's frames (the `local_frames` newest, the references' keyframes) other than "
+        "its own (paper's visibility mask; 0: every point counts).",
+    )
     huber: float = option(
         9 / 255, "direct: Huber threshold of the solve's robust weights (intensities in [0, 1])."
     )
@@ -105,7 +111,11 @@ class TrackerConfig:
     )
     pixels: int = option(3000, "adam: high-gradient pixels per tracking step.")
     pose_lr: float = option(1e-2, "adam: learning rate of the pose increments.")
-    local_frames: int = option(11, "adam: newest frames in the tracking window (paper: k-5..k+5).")
+    local_frames: int = option(
+        11,
+        "Newest frames in the tracking window (paper: k-5..k+5); direct: the frames of its "
+        "visibility mask (`min_views`).",
+    )
     optimize_last: int = option(11, "adam: how many of the newest window frames move.")
     keyframes: int = option(10, "adam: overlapping keyframes added (fixed) to the window.")
     overlap: float = option(0.7, "View overlap a keyframe needs to join the window.")

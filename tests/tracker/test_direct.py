@@ -183,6 +183,31 @@ def test_references_are_rendered_per_map_not_per_frame():
     assert t.map_changed(wall, kfs, version=2) == 2  # a new map: the newest render again
 
 
+def test_the_visibility_mask_keeps_a_part_only_the_newest_frames_saw_from_pulling_the_pose():
+    # The window's older frames look 0.8 further left; the newest keyframe's right side,
+    # which only it and the frame see, has its depth 30 % too far (a surface the map has
+    # just begun to form).
+    old = pose.compose(pose.exp_se3(torch.tensor([-0.8, 0.0, 0.0, 0.0, 0.0, 0.0])), TRUTH)
+    newest = pose.compose(pose.exp_se3(torch.tensor([0.2, 0.05, 0.0, 0.0, 0.0, 0.0])), TRUTH)
+    ends = {}
+    for min_views in (0, 2):
+        t = solver(min_views=min_views)
+        kfs = [keyframe(old, 0), keyframe(newest, 1)]
+        t.map_changed(wall, kfs, version=1)
+        ref = t.references[1]
+        right = CAM.project(ref.p_k)[0][:, 0] > 115
+        ref.p_k = torch.where(right[:, None], 1.3 * ref.p_k, ref.p_k)
+        window = [FrameState(i, 0.0, None, old.clone()) for i in (2, 3)]
+        guess = pose.retract(TRUTH, torch.tensor([0.01, -0.005, 0.0, 0.0, 0.005, 0.0]))
+        frame = FrameState(4, 0.0, textured_wall_image(TRUTH, CAM), guess)
+        result = t.track(wall, [*window, frame], kfs)
+        ends[min_views] = error(frame.T_wc, TRUTH)
+        ends[min_views] += (result.stats.points,)
+    n, far = len(ref.p_k), int(right.sum())
+    assert ends[0][2] == n and 0.5 * n < ends[2][2] <= n - far, (ends, far)
+    assert ends[0][0] > 0.03 and max(ends[2][:2]) < 1e-3, ends
+
+
 def test_an_older_keyframe_tracked_against_is_rendered_again_from_a_newer_map():
     t = solver(references=2, refresh=1)
     kfs = [keyframe(KF, 0), keyframe(TRUTH, 1), keyframe(TRUTH, 2)]
