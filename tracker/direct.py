@@ -249,7 +249,9 @@ class DirectTracker:
         refs, rendered = self.choose(field, keyframes, frame.T_wc)
         if not refs:
             raise TrackingLost(f"frame {frame.index}: no rendered keyframe overlaps its view")
-        views = list({id(f): f for f in [*local, *(r.keyframe for r in refs)]}.values())
+        views = None
+        if self.cfg.min_views > 0:
+            views = list({id(f): f for f in [*local, *(r.keyframe for r in refs)]}.values())
         solved = self.solve(frame, refs, self.images(frame), self.cfg.hold, views)
         solved.stats.rendered = rendered
         return self._accept(frame, solved)
@@ -329,7 +331,7 @@ class DirectTracker:
             [torch.full((len(r.p_k),), k, dtype=torch.long) for k, r in enumerate(refs)]
         )
         order = torch.randperm(len(p_w), generator=self.generator)
-        if views is not None and self.cfg.min_views > 0:
+        if views is not None:
             keep = self._seen(p_w, ref_of, refs, views)
             order = order[keep[order]]
         # The brightness model works on intensities about each reference's mean, so that the
@@ -348,9 +350,7 @@ class DirectTracker:
         all but two of them) other than their own reference's frame: the paper's visibility
         mask over the tracking window. A part of the scene only the newest frames have seen
         (where the map has had the least time to form) does not pull the pose."""
-        T_cw = pose.invert(torch.stack([v.T_wc for v in views]))  # (V, 4, 4)
-        uv, z = self.camera.project(pose.transform_points(T_cw, p_w))  # (V, N)
-        inside = (z > 0) & self.camera.inside(uv)
+        _, inside = self._view(p_w, pose.invert(torch.stack([v.T_wc for v in views])))  # (V, N)
         own = torch.tensor([[v is r.keyframe for r in refs] for v in views])[:, ref_of]
         count = (inside & ~own).sum(0)
         return count > min(self.cfg.min_views, len(views) - 2)
@@ -448,7 +448,8 @@ class DirectTracker:
         return TrackResult(frame.index, frame.T_wc, stats, (*stats.references, frame.index))
 
     def _view(self, p_w: torch.Tensor, T_cw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pixels of world points `(N, 3)` in camera `T_cw`, and which of them it sees."""
+        """Pixels of world points `(N, 3)` in camera `T_cw` (or in each of `(V, 4, 4)`
+        cameras: `(V, N, ...)`), and which of them it sees."""
         uv, z = self.camera.project(pose.transform_points(T_cw, p_w))
         return uv, (z > 0) & self.camera.inside(uv)
 
