@@ -201,8 +201,7 @@ def test_the_visibility_mask_keeps_a_part_only_the_newest_frames_saw_from_pullin
         guess = pose.retract(TRUTH, torch.tensor([0.01, -0.005, 0.0, 0.0, 0.005, 0.0]))
         frame = FrameState(4, 0.0, textured_wall_image(TRUTH, CAM), guess)
         result = t.track(wall, [*window, frame], kfs)
-        ends[min_views] = error(frame.T_wc, TRUTH)
-        ends[min_views] += (result.stats.points,)
+        ends[min_views] = (*error(frame.T_wc, TRUTH), result.stats.points)
     n, far = len(ref.p_k), int(right.sum())
     assert ends[0][2] == n and 0.5 * n < ends[2][2] <= n - far, (ends, far)
     assert ends[0][0] > 0.03 and max(ends[2][:2]) < 1e-3, ends
