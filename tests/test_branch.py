@@ -20,15 +20,23 @@ def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(
     write_sequence(scene, frames=18, width=160, height=120, seed=0)
     figures = tmp_path / "figures.json"
     argv = ["branch.py", str(scene), "--preset", "tiny", "--at", "12", "--out", str(tmp_path)]
-    # The last compares colours where the run compared grey: its references are rendered anew.
-    variants = ["", "", "tracker.solver=adam;loss.patch_sizes=1", "tracker.colour=true"]
+    # The colour variant compares colours where the run compared grey: its references are
+    # rendered anew. A branch's pyramid may be shorter than the run's, not taller.
+    variants = [
+        "",
+        "",
+        "tracker.solver=adam;loss.patch_sizes=1",
+        "tracker.colour=true",
+        "tracker.levels=1",
+        "tracker.levels=9",
+    ]
     monkeypatch.setattr(
         "sys.argv", [*argv, *(f"--variant={v}" for v in variants), "--json", str(figures)]
     )
     branch.main()
     results = json.loads(figures.read_text())["results"]
     assert [r["variant"] for r in results] == variants
-    assert not any(r.get("failed") for r in results), results
+    assert not any(r.get("failed") for r in results[:5]) and results[5]["failed"], results
     # Two children of one state, with nothing changed, are one computation.
     assert results[0] == results[1]
     # Another solver from frame 12 on: the last 6 poses differ, the first 12 do not.
@@ -38,6 +46,7 @@ def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(
     )
     assert ours[:12] == theirs[:12] and ours[12:] != theirs[12:]
     assert results[2]["lost"] == 0 and results[2]["ate_cm"] < 10.0, results[2]
+    assert results[4] != results[0] and results[4]["ate_cm"] < 10.0, results[4]
     out = capsys.readouterr().out
     assert "[2] tracker.solver=adam;loss.patch_sizes=1" in out, out
 
