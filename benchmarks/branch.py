@@ -86,16 +86,17 @@ def switch(slam: Slam, overrides: dict[str, str]) -> None:
         return
     cfg = apply_overrides(slam.cfg, overrides)
     front = slam.front
-    if cfg.tracker.levels > slam.cfg.tracker.levels:
-        raise ValueError("tracker.levels: a branch's pyramid can be shorter, not taller")
+    built = max(slam.cfg.tracker.levels, slam.cfg.tracker.reloc_levels)
+    if max(cfg.tracker.levels, cfg.tracker.reloc_levels) > built:
+        raise ValueError(
+            "tracker.levels, tracker.reloc_levels: a branch's pyramid can be shorter, not taller"
+        )
     same = (cfg.tracker.solver == "direct") == isinstance(front.tracker, DirectTracker)
     # Cached references hold grey levels or colours: another choice renders them afresh.
     same = same and cfg.tracker.colour == slam.cfg.tracker.colour
     front.cfg = cfg
     if same:
         front.tracker.cfg = cfg.tracker
-        if isinstance(front.tracker, DirectTracker):  # the cached references keep theirs
-            front.tracker.cameras = front.tracker.cameras[: cfg.tracker.levels]
         if isinstance(front.tracker, Tracker):
             front.tracker.loss_cfg = cfg.loss
         return

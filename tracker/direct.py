@@ -125,7 +125,7 @@ class DirectTracker:
         self.generator = generator
         self.cameras: list[Camera] = []
         size = camera
-        for _ in range(cfg.levels):
+        for _ in range(max(cfg.levels, cfg.reloc_levels)):
             self.cameras.append(size)
             if min(size.width, size.height) < 32:
                 break
@@ -277,7 +277,7 @@ class DirectTracker:
         """
         frame = local[-1]
         images = self.images(frame)
-        level = len(images) - 1
+        level = min(self.cfg.reloc_levels, len(images)) - 1
         coarse: list[tuple[float, np.ndarray, list[Reference]]] = []
         for start in starts:
             refs, _ = self.choose(field, keyframes, start)
@@ -404,7 +404,7 @@ class DirectTracker:
         stats = DirectStats(references=tuple(r.keyframe.index for r in refs), points=len(pts.p_w))
         budget = self.cfg.iters
         finest = None
-        for level in reversed(range(len(images))):
+        for level in reversed(range(min(self.cfg.levels, len(images)))):
             finest = self._problem(images, refs, pts, level)
             # A fair share of the iterations left; what a level leaves unused passes on.
             share = max(1, budget // (level + 1))

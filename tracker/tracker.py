@@ -56,7 +56,12 @@ class TrackerConfig:
     iters: int = option(
         20, "Iterations per frame: Adam steps, or Gauss-Newton steps over all pyramid levels."
     )
-    levels: int = option(4, "direct: image pyramid levels, coarse to fine.")
+    levels: int = option(4, "direct: image pyramid levels of the solve, coarse to fine.")
+    reloc_levels: int = option(
+        4,
+        "direct: pyramid levels of a lost frame's search (its coarse moves run on the coarsest, "
+        "where the basin is widest); a solve on fewer `levels` keeps this wide search.",
+    )
     ref_points: int = option(500, "direct: high-gradient points rendered per keyframe.")
     references: int = option(
         6,
