@@ -86,8 +86,7 @@ def switch(slam: Slam, overrides: dict[str, str]) -> None:
         return
     cfg = apply_overrides(slam.cfg, overrides)
     front = slam.front
-    built = max(slam.cfg.tracker.levels, slam.cfg.tracker.reloc_levels)
-    if max(cfg.tracker.levels, cfg.tracker.reloc_levels) > built:
+    if cfg.tracker.pyramid_levels > slam.cfg.tracker.pyramid_levels:
         raise ValueError(
             "tracker.levels, tracker.reloc_levels: a branch's pyramid can be shorter, not taller"
         )

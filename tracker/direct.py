@@ -125,7 +125,7 @@ class DirectTracker:
         self.generator = generator
         self.cameras: list[Camera] = []
         size = camera
-        for _ in range(max(cfg.levels, cfg.reloc_levels)):
+        for _ in range(cfg.pyramid_levels):
             self.cameras.append(size)
             if min(size.width, size.height) < 32:
                 break
@@ -276,7 +276,7 @@ class DirectTracker:
             TrackingLost: no start leads to a solution that good.
         """
         frame = local[-1]
-        images = self.images(frame)
+        images = self.images(frame, len(self.cameras))
         level = min(self.cfg.reloc_levels, len(images)) - 1
         coarse: list[tuple[float, np.ndarray, list[Reference]]] = []
         for start in starts:
@@ -313,10 +313,12 @@ class DirectTracker:
             )
         return self._accept(frame, best)
 
-    def images(self, frame: FrameState) -> list[torch.Tensor]:
-        """The frame's pyramid (grey or colour) with the gradients, finest first."""
+    def images(self, frame: FrameState, levels: int | None = None) -> list[torch.Tensor]:
+        """The frame's pyramid (grey or colour) with the gradients, finest first: the solve's
+        levels, or `levels` (a lost frame's search takes the whole pyramid)."""
         assert frame.rgb is not None
-        images = pyramid(channels(frame.rgb, self.cfg.colour), len(self.cameras))
+        levels = min(levels or self.cfg.levels, len(self.cameras))
+        images = pyramid(channels(frame.rgb, self.cfg.colour), levels)
         return [with_gradients(img) for img in images]
 
     def _brightness(self, refs: list[Reference]) -> np.ndarray:

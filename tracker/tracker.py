@@ -135,6 +135,12 @@ class TrackerConfig:
         "seeds: 38.9 cm with 9 frames lost -> 17.7 cm, none lost; docs/results.md).",
     )
 
+    @property
+    def pyramid_levels(self) -> int:
+        """direct: levels of the pyramid kept per frame and reference: the solve's and the
+        lost frames' search's, whichever is taller."""
+        return max(self.levels, self.reloc_levels)
+
 
 @dataclass(frozen=True)
 class TrackResult:
