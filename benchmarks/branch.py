@@ -28,10 +28,11 @@ references and random stream) ends when started at that pose: whether the direct
 minimum lies where the Adam tracker stopped. The lines do not change the run.
 
 A variant is `key=value` overrides joined by `;`, keys in the `tracker.` and `loss.`
-sections (the loss settings reach the Adam window tracker only; the mapper keeps the run's
-settings); '' is the run as it is. A variant of the same solver swaps its settings in and
-keeps what the solver cached; another solver (or the direct one comparing colours instead of
-grey, or back) starts fresh at F (the direct one renders its references from the map at F).
+sections or `mapper.refine_keyframes` (the loss settings reach the Adam window tracker and
+the keyframes' refinement only; the mapper keeps the run's other settings); '' is the run as
+it is. A variant of the same solver swaps its settings in and keeps what the solver cached;
+another solver (or the direct one comparing colours instead of grey, or back) starts fresh
+at F (the direct one renders its references from the map at F).
 Children run one after another. POSIX only (fork).
 """
 
@@ -63,13 +64,13 @@ from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import Tracker, TrackResult
 
-SECTIONS = ("tracker.", "loss.")
+SECTIONS = ("tracker.", "loss.", "mapper.refine_keyframes")
 TRUTH_FRAMES = 30
 """Frames before the branch point whose poses place the ground truth in a run's world."""
 
 
 def parse_variant(text: str) -> dict[str, str]:
-    """`key=value;key=value` -> overrides; only tracking-side sections."""
+    """`key=value;key=value` -> overrides; only the tracking side's settings."""
     out = {}
     for part in filter(None, (p.strip() for p in text.split(";"))):
         key, sep, value = part.partition("=")
@@ -94,6 +95,7 @@ def switch(slam: Slam, overrides: dict[str, str]) -> None:
     # Cached references hold grey levels or colours: another choice renders them afresh.
     same = same and cfg.tracker.colour == slam.cfg.tracker.colour
     front.cfg = cfg
+    slam.back.cfg = cfg  # read per round for the keyframes' refinement; the Mapper keeps its own
     if same:
         front.tracker.cfg = cfg.tracker
         if isinstance(front.tracker, Tracker):

@@ -39,6 +39,8 @@ from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
+from dimslam.tracker.frontend import MAX_VELOCITY_STEPS, carry_motion
+from dimslam.tracker.tracker import Tracker
 
 if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s to load
     import trimesh
@@ -54,6 +56,7 @@ class BackEnd:
     ) -> None:
         self.cfg = cfg
         self.camera = camera
+        self.generator = generator
         self.mapper = Mapper(
             cfg.mapper,
             cfg.map,
@@ -115,6 +118,7 @@ class BackEnd:
             window = self.frames
         else:
             window = self.frames[-self.cfg.mapper.every :]
+            self._refine_keyframes(window)
             result = self.mapper.map(window, self.keyframes)
         self._anchor(window)
         every = self.cfg.mapper.global_every
@@ -125,6 +129,42 @@ class BackEnd:
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
         return result
+
+    def _refine_keyframes(self, window: list[FrameState]) -> None:
+        """`mapper.refine_keyframes` steps of the tracking window objective on each keyframe
+        of `window`, as the Adam tracker solves a frame: from the motion of the two frames
+        before it carried on, against the frames before it that keep their images and the
+        older keyframes. The refined pose replaces the tracked one only where the window
+        objective scores it lower; the frames after it move with it, so that their motion
+        stays as tracked.
+
+        The direct tracker solves each frame against keyframes only, where a fast turn of a
+        narrow view can slide (turn too far and step back) into a minimum of that cost; the
+        window objective, with the recent frames as sources and its visibility mask, holds
+        the turn when started from the motion guess (docs/results.md, session 21). Keyframes
+        are what the map is fitted to, so theirs are the poses refined."""
+        cfg = self.cfg.mapper
+        if cfg.refine_keyframes <= 0:
+            return
+        refiner = Tracker(
+            self.cfg.tracker, self.cfg.loss, self.cfg.render, self.camera, self.generator
+        )
+        position = {id(f): k for k, f in enumerate(self.frames)}
+        for kf in [f for f in window if f.keyframe and f.rgb is not None]:
+            k = position[id(kf)]
+            local = [f for f in self.frames[:k] if f.rgb is not None]
+            if len(local) < 2:
+                continue
+            local = [*local[-(self.cfg.tracker.local_frames - 1) :], kf]
+            older = [f for f in self.keyframes if f.index < kf.index]
+            tracked = kf.T_wc.clone()
+            guess = carry_motion(
+                [(f.index, f.T_wc) for f in local[-3:-1]], kf.index, MAX_VELOCITY_STEPS
+            )
+            refiner.refine(self.field, local, older, cfg.refine_keyframes, [guess])
+            correction = pose.compose(kf.T_wc, pose.invert(tracked))
+            for f in self.frames[k + 1 :]:
+                f.T_wc = pose.normalize(pose.compose(correction, f.T_wc))
 
     def _close_loops(self, window: list[FrameState]) -> None:
         """Describe the window's new keyframes and close the first loop one of them finds."""

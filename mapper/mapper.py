@@ -93,6 +93,13 @@ class MapperConfig:
         True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
+    refine_keyframes: int = option(
+        0,
+        "Adam steps of the paper's tracking window objective (the `tracker` section's window "
+        "settings) on each new keyframe's pose before its mapping round, from the motion of the "
+        "two frames before it carried on (as the Adam tracker starts a frame), against those "
+        "frames and the keyframes overlapping it; the frames after it follow (0: none).",
+    )
     init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
     init_grow_iters: int = option(
         40, "Initialization iterations after each frame joins (frames join one at a time)."

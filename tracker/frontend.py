@@ -50,6 +50,21 @@ motion; across a longer one the last pose is the guess."""
 MAX_EXTRAPOLATION = 30
 """While relocalizing, the last motion is also repeated over the whole gap, up to this many
 frames (a second at 30 FPS)."""
+
+
+def carry_motion(recent: list[tuple[int, torch.Tensor]], index: int, limit: int) -> torch.Tensor:
+    """The motion between the two poses `recent` (`(frame index, T_wc)`, older first), per
+    frame, carried on to frame `index`: the last pose when either gap (between those two, or
+    on to `index`) exceeds `limit` frames, or when there is only one."""
+    (last, T_last), before = recent[-1], recent[-2] if len(recent) > 1 else None
+    steps = index - last
+    if before is None or not 0 < last - before[0] <= limit or not 0 < steps <= limit:
+        return T_last.clone()
+    twist = pose.log_se3(pose.compose(pose.invert(before[1]), T_last))
+    per_frame = twist / (last - before[0])
+    return pose.normalize(pose.compose(T_last, pose.exp_se3(per_frame * steps)))
+
+
 RESIDUAL_HISTORY = 20
 RELOC_RESIDUAL = 1.5
 """A relocalization is accepted when its residual is at most this times the median residual
@@ -125,13 +140,7 @@ class FrontEnd:
         the solves of the frames lost since ended (`followed`): through a stretch where the
         map is too poor to accept a solve, the guesses still follow the camera."""
         recent = [(f.index, f.T_wc) for f in self.frames[-2:]] + self.followed[-2:]
-        (last, T_last), before = recent[-1], recent[-2] if len(recent) > 1 else None
-        steps = index - last
-        if before is None or not 0 < last - before[0] <= limit or not 0 < steps <= limit:
-            return T_last.clone()
-        twist = pose.log_se3(pose.compose(pose.invert(before[1]), T_last))
-        per_frame = twist / (last - before[0])
-        return pose.normalize(pose.compose(T_last, pose.exp_se3(per_frame * steps)))
+        return carry_motion(recent[-2:], index, limit)
 
     def track(
         self, field: FieldFn, index: int, timestamp: float, rgb: torch.Tensor

@@ -179,20 +179,7 @@ class Tracker:
             TrackingLost: the loss diverged or the poses became non-finite.
         """
         newest = local[-1]
-        in_local = {id(f) for f in local}
-        candidates = [kf for kf in keyframes if id(kf) not in in_local]
-        fixed = overlapping_keyframes(
-            field,
-            newest,
-            candidates,
-            self.camera,
-            self.cfg.keyframes,
-            self.cfg.overlap,
-            self.cfg.overlap_pixels,
-            self.render_cfg,
-            self.generator,
-        )
-        window = fixed + local
+        window = self._window(field, local, keyframes)
         newest_ids = {id(f) for f in local[-self.cfg.optimize_last :]}
         movable = [not f.keyframe and id(f) in newest_ids for f in window]
         if all(movable):  # nothing fixed to warp from: the oldest frame anchors the rest
@@ -202,6 +189,63 @@ class Tracker:
             window, movable, objective, self.cfg.iters, self.cfg.pose_lr, max_loss=self.cfg.max_loss
         )
         return TrackResult(newest.index, newest.T_wc, stats, tuple(f.index for f in window))
+
+    def refine(
+        self,
+        field: FieldFn,
+        local: list[FrameState],
+        keyframes: list[FrameState],
+        iters: int,
+        starts: list[torch.Tensor],
+    ) -> float:
+        """`iters` steps of the window objective on the pose of `local[-1]` alone (a keyframe
+        or not), every other frame of the window fixed, from each of `starts` in turn. The
+        frame keeps whichever scores lowest of its pose as given and those ends: one
+        objective (pixels, depths and visibility mask, taken at the pose as given) scores
+        them all. A start that diverges drops out. Returns the kept pose's objective."""
+        newest = local[-1]
+        window = self._window(field, local, keyframes)
+        movable = [f is newest for f in window]
+        objective = self._objective(field, window, movable)
+
+        def score() -> float:
+            with torch.no_grad():
+                return objective(0, torch.stack([f.T_wc for f in window]))[0].item()
+
+        best, best_loss = newest.T_wc.clone(), score()
+        for start in starts:
+            newest.T_wc = start.clone()
+            try:
+                minimize(
+                    window, movable, objective, iters, self.cfg.pose_lr, max_loss=self.cfg.max_loss
+                )
+            except TrackingLost as error:
+                log.debug("frame %d: a refinement diverged: %s", newest.index, error)
+                continue
+            loss = score()
+            if loss < best_loss:
+                best, best_loss = newest.T_wc.clone(), loss
+        newest.T_wc = best
+        return best_loss
+
+    def _window(
+        self, field: FieldFn, local: list[FrameState], keyframes: list[FrameState]
+    ) -> list[FrameState]:
+        """The keyframes (not in `local`) that overlap its newest frame best, then `local`."""
+        in_local = {id(f) for f in local}
+        candidates = [kf for kf in keyframes if id(kf) not in in_local]
+        fixed = overlapping_keyframes(
+            field,
+            local[-1],
+            candidates,
+            self.camera,
+            self.cfg.keyframes,
+            self.cfg.overlap,
+            self.cfg.overlap_pixels,
+            self.render_cfg,
+            self.generator,
+        )
+        return fixed + local
 
     def relocalize(
         self,

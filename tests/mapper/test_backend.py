@@ -3,7 +3,7 @@ keyframe, and follows the keyframes a loop correction or a global refinement rou
 
 import pytest
 import torch
-from walls import CAM, textured_wall_image
+from walls import CAM, textured_wall_image, wall
 
 from dimslam.common.config import PRESETS
 from dimslam.common.geometry import pose, sim3
@@ -11,6 +11,7 @@ from dimslam.common.map.mesh import EmptyMeshError
 from dimslam.common.optim.window import FrameState
 from dimslam.common.options import apply_overrides
 from dimslam.mapper.backend import BackEnd
+from dimslam.tracker.tracker import Tracker
 
 
 def moved(x: float) -> torch.Tensor:
@@ -70,3 +71,58 @@ def test_a_global_refinement_round_moves_keyframes_and_the_frames_anchored_to_th
     assert torch.equal(frames[0].T_wc, before[0])
     assert not torch.equal(frames[2].T_wc, before[2])
     assert torch.allclose(frames[3].T_wc, pose.compose(frames[2].T_wc, rel), atol=1e-5)
+
+
+def test_a_new_keyframe_is_refined_by_the_window_objective_and_the_frames_after_follow():
+    """A keyframe tracked off the truth is put back by the window objective, started from the
+    motion of the frames before it carried on; the frame after it keeps its motion relative to
+    it and the frames before it stay."""
+    cfg = apply_overrides(
+        PRESETS["tiny"],
+        {
+            "mapper.refine_keyframes": "60",
+            "tracker.pixels": "400",
+            "tracker.pose_lr": "3e-3",
+        },
+    )
+    back = BackEnd(cfg, CAM, torch.device("cpu"), torch.Generator().manual_seed(0))
+    back.mapper.field = wall  # an exact map
+    truth = [
+        pose.exp_se3(torch.tensor([0.02 * i, 0.01 * i, 0.01 * i, 0.0, 0.005 * i, 0.0]))
+        for i in range(6)
+    ]
+    off = pose.exp_se3(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.008, 0.005]))
+    frames = [
+        FrameState(i, i / 30, textured_wall_image(T), T.clone(), keyframe=i in (0, 4))
+        for i, T in enumerate(truth)
+    ]
+    for f in frames[4:]:  # tracked with the same error from frame 4 on
+        f.T_wc = pose.compose(
+            truth[4], pose.compose(off, pose.compose(pose.invert(truth[4]), f.T_wc))
+        )
+    back.add(frames)
+    back.initialized = True
+
+    def error(k: int) -> float:
+        return float(pose.log_se3(pose.compose(pose.invert(truth[k]), frames[k].T_wc)).norm())
+
+    before = error(4)
+    relative = pose.compose(pose.invert(frames[4].T_wc), frames[5].T_wc)
+    back._refine_keyframes(frames[3:])
+    assert error(4) < 0.3 * before
+    after = pose.compose(pose.invert(frames[4].T_wc), frames[5].T_wc)
+    assert torch.allclose(after, relative, atol=1e-5)
+    assert all(torch.allclose(frames[k].T_wc, truth[k], atol=1e-6) for k in range(4))
+    # The objective decides between the pose as given and the ends: with no steps, the
+    # truth as a start replaces a pose off it, and a start off the truth is not taken.
+    refiner = Tracker(cfg.tracker, cfg.loss, cfg.render, CAM, torch.Generator().manual_seed(0))
+    frames[4].T_wc = pose.compose(truth[4], off)
+    refiner.refine(wall, frames[:5], [], 0, [truth[4]])
+    assert torch.allclose(frames[4].T_wc, truth[4], atol=1e-6)
+    refiner.refine(wall, frames[:5], [], 0, [pose.compose(truth[4], off)])
+    assert torch.allclose(frames[4].T_wc, truth[4], atol=1e-6)
+    # Off: nothing moves.
+    back.cfg = PRESETS["tiny"]
+    kept = [f.T_wc.clone() for f in frames]
+    back._refine_keyframes(frames[3:])
+    assert all(torch.equal(f.T_wc, T) for f, T in zip(frames, kept, strict=True))
