@@ -28,7 +28,7 @@ references and random stream) ends when started at that pose: whether the direct
 minimum lies where the Adam tracker stopped. The lines do not change the run.
 
 A variant is `key=value` overrides joined by `;`, keys in the `tracker.` and `loss.`
-sections or `mapper.refine_keyframes` (the loss settings reach the Adam window tracker and
+sections or `mapper.refine_*` (the loss settings reach the Adam window tracker and
 the keyframes' refinement only; the mapper keeps the run's other settings); '' is the run as
 it is. A variant of the same solver swaps its settings in and keeps what the solver cached;
 another solver (or the direct one comparing colours instead of grey, or back) starts fresh
@@ -64,7 +64,7 @@ from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import Tracker, TrackResult
 
-SECTIONS = ("tracker.", "loss.", "mapper.refine_keyframes")
+SECTIONS = ("tracker.", "loss.", "mapper.refine_")
 TRUTH_FRAMES = 30
 """Frames before the branch point whose poses place the ground truth in a run's world."""
 

@@ -56,7 +56,11 @@ class BackEnd:
     ) -> None:
         self.cfg = cfg
         self.camera = camera
-        self.generator = generator
+        # The keyframes' refinement draws its pixels from a stream of its own, so that a run
+        # where it changes no pose is the run without it (the mapper's draws stay as they were).
+        self.refine_generator = torch.Generator(generator.device).manual_seed(
+            generator.initial_seed() + 1
+        )
         self.mapper = Mapper(
             cfg.mapper,
             cfg.map,
@@ -132,22 +136,24 @@ class BackEnd:
 
     def _refine_keyframes(self, window: list[FrameState]) -> None:
         """`mapper.refine_keyframes` steps of the tracking window objective on each keyframe
-        of `window`, as the Adam tracker solves a frame: from the motion of the two frames
-        before it carried on, against the frames before it that keep their images and the
-        older keyframes. The refined pose replaces the tracked one only where the window
-        objective scores it lower; the frames after it move with it, so that their motion
-        stays as tracked.
+        of `window`, against the frames before it that keep their images and the older
+        keyframes: once from its tracked pose, once from the motion of the two frames before
+        it carried on (as the Adam tracker starts a frame). Where the two ends are different
+        minima (`mapper.refine_apart_deg`) and the motion's scores lower, it replaces the
+        tracked pose, and the frames after it move with it so that their motion stays as
+        tracked; elsewhere the tracked pose stays.
 
         The direct tracker solves each frame against keyframes only, where a fast turn of a
         narrow view can slide (turn too far and step back) into a minimum of that cost; the
         window objective, with the recent frames as sources and its visibility mask, holds
-        the turn when started from the motion guess (docs/results.md, session 21). Keyframes
-        are what the map is fitted to, so theirs are the poses refined."""
+        the turn when started from the motion guess. Taking its end everywhere cost the
+        smooth stretches (docs/results.md, session 21), so it only judges between two minima.
+        Keyframes are what the map is fitted to, so theirs are the poses refined."""
         cfg = self.cfg.mapper
         if cfg.refine_keyframes <= 0:
             return
         refiner = Tracker(
-            self.cfg.tracker, self.cfg.loss, self.cfg.render, self.camera, self.generator
+            self.cfg.tracker, self.cfg.loss, self.cfg.render, self.camera, self.refine_generator
         )
         position = {id(f): k for k, f in enumerate(self.frames)}
         for kf in [f for f in window if f.keyframe and f.rgb is not None]:
@@ -161,7 +167,22 @@ class BackEnd:
             guess = carry_motion(
                 [(f.index, f.T_wc) for f in local[-3:-1]], kf.index, MAX_VELOCITY_STEPS
             )
-            refiner.refine(self.field, local, older, cfg.refine_keyframes, [guess])
+            ends = refiner.refine(self.field, local, older, cfg.refine_keyframes, [tracked, guess])
+            if ends[0] is None or ends[1] is None:
+                continue
+            apart = math.degrees(
+                pose.rotation_angle(pose.compose(pose.invert(ends[0][0]), ends[1][0])[:3, :3])
+            )
+            log.debug(
+                "keyframe %d: refined ends %.2f deg apart, objective %.5f (tracked) %.5f (guess)",
+                kf.index,
+                apart,
+                ends[0][1],
+                ends[1][1],
+            )
+            if apart <= cfg.refine_apart_deg or ends[1][1] >= ends[0][1]:
+                continue
+            kf.T_wc = ends[1][0]
             correction = pose.compose(kf.T_wc, pose.invert(tracked))
             for f in self.frames[k + 1 :]:
                 f.T_wc = pose.normalize(pose.compose(correction, f.T_wc))

@@ -96,9 +96,16 @@ class MapperConfig:
     refine_keyframes: int = option(
         0,
         "Adam steps of the paper's tracking window objective (the `tracker` section's window "
-        "settings) on each new keyframe's pose before its mapping round, from the motion of the "
-        "two frames before it carried on (as the Adam tracker starts a frame), against those "
-        "frames and the keyframes overlapping it; the frames after it follow (0: none).",
+        "settings) on each new keyframe's pose before its mapping round, once from the tracked "
+        "pose and once from the motion of the two frames before it carried on (as the Adam "
+        "tracker starts a frame), against those frames and the keyframes overlapping it; "
+        "where the two ends lie apart and the motion's scores lower, it replaces the tracked "
+        "pose and the frames after it follow (0: none).",
+    )
+    refine_apart_deg: float = option(
+        0.5,
+        "Degrees of rotation between the two refined ends of a keyframe above which they are "
+        "different minima of the window objective (below: the tracked pose stays).",
     )
     init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
     init_grow_iters: int = option(

@@ -29,6 +29,7 @@ def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(
         "tracker.colour=true",
         "tracker.levels=1",
         "tracker.levels=9",
+        "mapper.refine_keyframes=5;mapper.refine_apart_deg=180",
     ]
     monkeypatch.setattr(
         "sys.argv", [*argv, *(f"--variant={v}" for v in variants), "--json", str(figures)]
@@ -39,6 +40,9 @@ def test_branches_from_one_state_repeat_exactly_and_a_variant_changes_the_rest(
     assert not any(r.get("failed") for r in results[:5]) and results[5]["failed"], results
     # Two children of one state, with nothing changed, are one computation.
     assert results[0] == results[1]
+    # Keyframes refined but none replaced: the refinement's own pixel draws leave the run as
+    # it was.
+    assert {**results[6], "variant": ""} == results[0]
     # Another solver from frame 12 on: the last 6 poses differ, the first 12 do not.
     ours, theirs = (
         [ln.split() for ln in (tmp_path / k / "trajectory.txt").read_text().splitlines()[1:]]

@@ -197,22 +197,18 @@ class Tracker:
         keyframes: list[FrameState],
         iters: int,
         starts: list[torch.Tensor],
-    ) -> float:
+    ) -> list[tuple[torch.Tensor, float] | None]:
         """`iters` steps of the window objective on the pose of `local[-1]` alone (a keyframe
-        or not), every other frame of the window fixed, from each of `starts` in turn. The
-        frame keeps whichever scores lowest of its pose as given and those ends: one
-        objective (pixels, depths and visibility mask, taken at the pose as given) scores
-        them all. A start that diverges drops out. Returns the kept pose's objective."""
+        or not), every other frame of the window fixed, from each of `starts` in turn: per
+        start its end and the objective there (None where it diverged). One objective
+        (pixels, depths and visibility mask, taken at the frame's pose as given) scores every
+        end, so they compare; every frame keeps its pose as given."""
         newest = local[-1]
         window = self._window(field, local, keyframes)
+        given = [f.T_wc for f in window]  # `minimize` writes every pose back, normalized
         movable = [f is newest for f in window]
         objective = self._objective(field, window, movable)
-
-        def score() -> float:
-            with torch.no_grad():
-                return objective(0, torch.stack([f.T_wc for f in window]))[0].item()
-
-        best, best_loss = newest.T_wc.clone(), score()
+        ends: list[tuple[torch.Tensor, float] | None] = []
         for start in starts:
             newest.T_wc = start.clone()
             try:
@@ -221,12 +217,14 @@ class Tracker:
                 )
             except TrackingLost as error:
                 log.debug("frame %d: a refinement diverged: %s", newest.index, error)
+                ends.append(None)
                 continue
-            loss = score()
-            if loss < best_loss:
-                best, best_loss = newest.T_wc.clone(), loss
-        newest.T_wc = best
-        return best_loss
+            with torch.no_grad():
+                loss = objective(iters, torch.stack([f.T_wc for f in window]))[0].item()
+            ends.append((newest.T_wc.clone(), loss))
+        for f, T in zip(window, given, strict=True):
+            f.T_wc = T
+        return ends
 
     def _window(
         self, field: FieldFn, local: list[FrameState], keyframes: list[FrameState]
