@@ -109,6 +109,8 @@ class BackEnd:
             What the round did; `window` names the frames it refined.
         """
         started = time.perf_counter()
+        budget = self.cfg.mapper.round_budget
+        deadline = time.monotonic() + budget if budget > 0 and self.initialized else None
         if not self.initialized:
             result = self.mapper.initialize(self.frames)
             self.initialized = True
@@ -123,11 +125,11 @@ class BackEnd:
         else:
             window = self.frames[-self.cfg.mapper.every :]
             self._refine_keyframes(window)
-            result = self.mapper.map(window, self.keyframes)
+            result = self.mapper.map(window, self.keyframes, deadline)
         self._anchor(window)
         every = self.cfg.mapper.global_every
         if every > 0 and self.rounds > 0 and self.rounds % every == 0:
-            self.refine_global()
+            self.refine_global(deadline=deadline)
         self._close_loops(window)
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
@@ -221,12 +223,15 @@ class BackEnd:
             )
             return
 
-    def refine_global(self, iters: int | None = None) -> None:
+    def refine_global(self, iters: int | None = None, deadline: float | None = None) -> None:
         """A global refinement round (`mapper.global_every`; `iters`, default
         `mapper.global_iters`): keyframes anywhere on the path and the map optimized together,
-        in one window about a random keyframe; the frames anchored to keyframes follow."""
+        in one window about a random keyframe; the frames anchored to keyframes follow.
+        None after `deadline` (`time.monotonic()`), and its steps stop there."""
+        if deadline is not None and time.monotonic() >= deadline:
+            return
         iters = self.cfg.mapper.global_iters if iters is None else iters
-        self.mapper.post_optimize(self.keyframes, iters, chunk=iters, poses=True)
+        self.mapper.post_optimize(self.keyframes, iters, chunk=iters, poses=True, deadline=deadline)
         self._follow_anchors()
 
     def _move(self, keyframes: list[FrameState], nodes: torch.Tensor) -> list[float]:
