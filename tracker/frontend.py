@@ -80,6 +80,10 @@ class FrontEnd:
         self.cfg = cfg
         self.camera = camera
         self.tracker: Tracker | DirectTracker
+        # Pixels of its own for `_refine`: a run where no frame is refined is the run without.
+        self.refine_generator = torch.Generator(generator.device).manual_seed(
+            generator.initial_seed() + 2
+        )
         if cfg.tracker.solver == "direct":
             self.tracker = DirectTracker(cfg.tracker, cfg.render, camera, generator)
         else:
@@ -155,6 +159,7 @@ class FrontEnd:
         state = FrameState(index, timestamp, rgb, self.guess(index))
         if not torch.isfinite(state.T_wc).all():
             state.T_wc = self.frames[-1].T_wc.clone()
+        guess = state.T_wc.clone()
         starts = self._starts(index, state.T_wc, keyframes) if self.relocalizing else []
         self.frames.append(state)
         local = self.frames[-self.cfg.tracker.local_frames :]
@@ -180,6 +185,8 @@ class FrontEnd:
         self.residuals.append(self.last_result.stats.loss)
         if self.relocalizing:
             log.info("relocalized at frame %d after %d lost frames", index, self.gap)
+        else:
+            self._refine(field, local, refs, guess)
         self.gap = 0
         self.followed.clear()
         if self.tracker.is_keyframe(field, state, keyframes[-1]):
@@ -196,6 +203,43 @@ class FrontEnd:
         self.pending.append(state)
         release_images(self.frames, self.cfg.kept_images)
         return state
+
+    def _refine(
+        self,
+        field: FieldFn,
+        local: list[FrameState],
+        keyframes: list[FrameState],
+        guess: torch.Tensor,
+    ) -> None:
+        """`tracker.window_refine_deg`: where the solve turned the newest frame away from
+        its motion guess by more than that, solve it again from the guess by the window
+        objective and take that end.
+
+        In a fast turn of a narrow view the direct solve against keyframes can slide (turn
+        too far and step back) into a minimum of its cost; the window objective, with the
+        frames before it as sources and its visibility mask, holds such a turn from the
+        motion guess, where the Adam tracker starts every frame (docs/results.md, sessions
+        17-18)."""
+        cfg = self.cfg
+        if cfg.tracker.window_refine_deg <= 0 or not isinstance(self.tracker, DirectTracker):
+            return
+        newest = local[-1]
+        turned = pose.rotation_angle(pose.compose(pose.invert(guess), newest.T_wc)[:3, :3])
+        if math.degrees(turned) <= cfg.tracker.window_refine_deg:
+            return
+        sources = [f for f in local if f.rgb is not None]
+        if len(sources) < 2:
+            return
+        refiner = Tracker(cfg.tracker, cfg.loss, cfg.render, self.camera, self.refine_generator)
+        end = refiner.refine(field, sources, keyframes, cfg.tracker.iters, [guess])[0]
+        if end is None:
+            return
+        newest.T_wc = end[0]
+        log.info(
+            "frame %d: %.2f deg from its guess; refined from the guess by the window objective",
+            newest.index,
+            math.degrees(turned),
+        )
 
     def _references(self, keyframes: list[FrameState]) -> list[FrameState]:
         """The keyframes a frame is tracked against, and, while frame 0 is the only one

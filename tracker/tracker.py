@@ -93,6 +93,13 @@ class TrackerConfig:
         "direct: hold the pose near the motion guess by this share of the data's curvature "
         "per pose direction (0: off): a direction the images leave loose stays at the guess.",
     )
+    window_refine_deg: float = option(
+        0.0,
+        "direct: a frame whose solve ends more than this many degrees of rotation from its "
+        "motion guess is solved again from the guess by the paper's window objective (Adam, "
+        "`iters` steps, its pose alone, the frames before it and the overlapping keyframes "
+        "as sources) and takes that end (0: never).",
+    )
     colour: bool = option(
         False,
         "direct: solve on the three colour channels (three residuals per point, one "
