@@ -109,8 +109,6 @@ class BackEnd:
             What the round did; `window` names the frames it refined.
         """
         started = time.perf_counter()
-        budget = self.cfg.mapper.round_budget
-        deadline = time.monotonic() + budget if budget > 0 and self.initialized else None
         if not self.initialized:
             result = self.mapper.initialize(self.frames)
             self.initialized = True
@@ -125,11 +123,11 @@ class BackEnd:
         else:
             window = self.frames[-self.cfg.mapper.every :]
             self._refine_keyframes(window)
-            result = self.mapper.map(window, self.keyframes, deadline)
+            result = self.mapper.map(window, self.keyframes)
         self._anchor(window)
         every = self.cfg.mapper.global_every
         if every > 0 and self.rounds > 0 and self.rounds % every == 0:
-            self.refine_global(deadline=deadline)
+            self.refine_global()
         self._close_loops(window)
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
@@ -223,15 +221,12 @@ class BackEnd:
             )
             return
 
-    def refine_global(self, iters: int | None = None, deadline: float | None = None) -> None:
+    def refine_global(self, iters: int | None = None) -> None:
         """A global refinement round (`mapper.global_every`; `iters`, default
         `mapper.global_iters`): keyframes anywhere on the path and the map optimized together,
-        in one window about a random keyframe; the frames anchored to keyframes follow.
-        None after `deadline` (`time.monotonic()`), and its steps stop there."""
-        if deadline is not None and time.monotonic() >= deadline:
-            return
+        in one window about a random keyframe; the frames anchored to keyframes follow."""
         iters = self.cfg.mapper.global_iters if iters is None else iters
-        self.mapper.post_optimize(self.keyframes, iters, chunk=iters, poses=True, deadline=deadline)
+        self.mapper.post_optimize(self.keyframes, iters, chunk=iters, poses=True)
         self._follow_anchors()
 
     def _move(self, keyframes: list[FrameState], nodes: torch.Tensor) -> list[float]:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import time
 from dataclasses import dataclass
 
 import torch
@@ -139,13 +138,6 @@ class MapperConfig:
         "(0: never).",
     )
     global_iters: int = option(20, "Iterations of a global refinement round.")
-    round_budget: float = option(
-        0.0,
-        "Seconds a mapping round may take, its global refinement included: its iterations "
-        "stop once they are spent (at least one runs), so that a mapper behind a live camera "
-        "maps the newest frames sooner instead of all its iterations on older ones (0: every "
-        "round runs all its iterations, the same on every run).",
-    )
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
     mesh_width: int = option(160, "Width of the depth images rendered for the mesh's fusion.")
@@ -423,14 +415,8 @@ class Mapper:
         return result.warp
 
     @_learning
-    def map(
-        self,
-        recent: list[FrameState],
-        keyframes: list[FrameState],
-        deadline: float | None = None,
-    ) -> MapRound:
-        """One mapping round on the recent frames plus keyframes overlapping the newest
-        (`deadline`: as `minimize`'s)."""
+    def map(self, recent: list[FrameState], keyframes: list[FrameState]) -> MapRound:
+        """One mapping round on the recent frames plus keyframes overlapping the newest."""
         in_recent = {id(f) for f in recent}
         others = [kf for kf in keyframes if id(kf) not in in_recent]
         chosen = overlapping_keyframes(
@@ -462,7 +448,6 @@ class Mapper:
             max_loss=float("inf"),
             surface=True,
             extra_loss=self._stereo(window),
-            deadline=deadline,
         )
         return MapRound(stats, tuple(f.index for f in window))
 
@@ -538,19 +523,16 @@ class Mapper:
         chunk: int = 20,
         anchors: list[FrameState] | None = None,
         poses: bool = False,
-        deadline: float | None = None,
     ) -> WindowStats | None:
         """Refinement over all keyframes (paper appendix): `iters` iterations (default
         `post_iters`) in windows of `chunk` iterations, each of a keyframe and the keyframes
         overlapping it: `anchors` in turn, random keyframes without them. Map only, or with
         the keyframes' poses (`poses`; frame 0 stays). Also refits the map where a loop
-        closure moved keyframes. `deadline`: as `minimize`'s, and no window starts after it."""
+        closure moved keyframes."""
         stats = None
         remaining = self.cfg.post_iters if iters is None else iters
         turn = 0
         while remaining > 0 and len(keyframes) > 1:
-            if deadline is not None and time.monotonic() >= deadline:
-                break
             if anchors:
                 anchor, turn = anchors[turn % len(anchors)], turn + 1
             else:
@@ -585,7 +567,6 @@ class Mapper:
                 generator=self.generator,
                 smooth=True,
                 max_loss=float("inf"),
-                deadline=deadline,
             )
             remaining -= chunk
         return stats

@@ -11,7 +11,6 @@ iteration (mapping and initialization); the tracker brings its own objective.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -105,7 +104,6 @@ def minimize(
     pose_lr: float,
     map_optimizer: torch.optim.Optimizer | None = None,
     max_loss: float = 10.0,
-    deadline: float | None = None,
 ) -> WindowStats:
     """Adam on an objective of the window's poses (and the map); write the poses back.
 
@@ -119,8 +117,6 @@ def minimize(
             the poses; None leaves the map fixed. The caller owns it, so its moments may
             outlive one call (`MapperConfig.keep_adam`).
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
-        deadline: a `time.monotonic()` time after which no further step starts (at least one
-            runs); None: all `iterations`.
 
     Raises:
         TrackingLost: on divergence; the frames keep their poses from before the step.
@@ -153,8 +149,6 @@ def minimize(
         stats.iterations = it + 1
         stats.loss, stats.warp, stats.render = value, result.warp, result.render
         stats.smooth, stats.warp_count = result.smooth, result.warp_count
-        if deadline is not None and time.monotonic() >= deadline:
-            break
     with torch.no_grad():
         final = pose.normalize(current())
     if not torch.isfinite(final).all():
@@ -180,7 +174,6 @@ def optimize_window(
     extra_loss: Callable[[WindowLoss, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     max_loss: float = 10.0,
     surface: bool = False,
-    deadline: float | None = None,
 ) -> WindowStats:
     """Minimize the window objective; write the optimized poses back into `frames`.
 
@@ -201,7 +194,6 @@ def optimize_window(
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
         surface: sample rays around the depth the map renders for the window at the start
             (`RenderConfig.surface_samples`; a map that already holds the window's surfaces).
-        deadline: as `minimize`'s.
 
     Raises:
         TrackingLost: on divergence; the frames keep their poses from before the step.
@@ -232,9 +224,7 @@ def optimize_window(
             total = total + extra_loss(result, frame, uv)
         return total, result
 
-    return minimize(
-        frames, movable, objective, iterations, pose_lr, map_optimizer, max_loss, deadline
-    )
+    return minimize(frames, movable, objective, iterations, pose_lr, map_optimizer, max_loss)
 
 
 def constant_velocity(previous: torch.Tensor, before: torch.Tensor) -> torch.Tensor:

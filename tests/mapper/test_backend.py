@@ -138,35 +138,3 @@ def test_a_keyframe_takes_the_refined_end_from_the_motion_where_the_two_ends_dif
     kept = [f.T_wc.clone() for f in frames]
     back._refine_keyframes(frames[3:])
     assert all(torch.equal(f.T_wc, T) for f, T in zip(frames, kept, strict=True))
-
-
-@pytest.mark.parametrize("budget, iterations", [(0.0, 6), (1e-9, 1)])
-def test_a_round_with_its_time_spent_stops_its_steps_and_skips_global_refinement(
-    budget, iterations
-):
-    """`mapper.round_budget`: a round whose seconds are spent stops after the step in progress
-    (at least one runs) and leaves out its global refinement; with no budget it runs all its
-    iterations and refines."""
-    cfg = apply_overrides(
-        PRESETS["tiny"],
-        {
-            "mapper.iters": "6",
-            "mapper.global_every": "1",
-            "mapper.global_iters": "4",
-            "mapper.pixels": "64",
-            "mapper.round_budget": str(budget),
-        },
-    )
-    back = BackEnd(cfg, CAM, torch.device("cpu"), torch.Generator().manual_seed(0))
-    frames = [
-        FrameState(i, i / 30, textured_wall_image(moved(0.05 * i)), moved(0.05 * i), i % 2 == 0)
-        for i in range(6)
-    ]
-    back.add(frames)
-    back.initialized, back.rounds = True, 1
-    refined = []
-    post_optimize = back.mapper.post_optimize
-    back.mapper.post_optimize = lambda *a, **k: refined.append(post_optimize(*a, **k))
-    result = back.step()
-    assert result.stats.iterations == iterations
-    assert len(refined) == (1 if budget == 0 else 0)
