@@ -13,7 +13,9 @@ given. Tracking: a map initialized on the first frames (the preset's initializat
 `--track-init-iters`) and held fixed,
 then `--track-frames` frames tracked by the preset's solver, the whole step timed per frame
 (p50, p95), and the first `--adam-frames` of them also by the Adam window tracker from the same
-guess (`track_ms_p50_adam`, `track_speedup` = its p50 over the solver's). Mapping, for the
+guess (`track_ms_p50_adam`, `track_speedup` = its p50 over the solver's); `track_refined`
+counts the timed frames that the window objective solved again (`tracker.window_refine_deg`,
+inside the timed step). Mapping, for the
 sparse map (`map_*`) and the dense one (`map_*_dense`) in turn: the system is
 initialized cheaply (`--init-iters`; accuracy is not the point), its frames all become
 keyframes so that keyframes join the windows, and each `Mapper.map` call (at most `--max-iters`
@@ -212,6 +214,7 @@ def time_tracking(
         "solver": cfg.tracker.solver,
         "track_frames": len(ms),
         "track_lost": lost,
+        "track_refined": len(front.refined),
         "track_ms_p50": p50,
         "track_ms_p95": float(np.percentile(ms, 95)),
         "track_frames_adam": len(ms_adam),

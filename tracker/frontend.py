@@ -99,6 +99,7 @@ class FrontEnd:
         # when they ended somewhere (`TrackingLost.best`): followed by the motion model only.
         self.followed: list[tuple[int, torch.Tensor]] = []
         self.init_last = -1  # index of the newest frame the initialization mapped
+        self.refined: list[int] = []  # frames solved again by the window objective (`_refine`)
 
     @property
     def relocalizing(self) -> bool:
@@ -235,6 +236,7 @@ class FrontEnd:
         if end is None:
             return
         newest.T_wc = end[0]
+        self.refined.append(newest.index)
         log.info(
             "frame %d: %.2f deg from its guess; refined from the guess by the window objective",
             newest.index,

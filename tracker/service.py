@@ -588,6 +588,7 @@ class TrackerService:
         out.mkdir(parents=True, exist_ok=True)
         write_tum(out / "trajectory_online.txt", self.online_trajectory(), header="as published")
         summary = self.stats.summary(self.frames_in.dropped)
+        summary["frames_refined"] = len(self.front.refined) if self.front is not None else 0
         (out / "tracker_stats.json").write_text(json.dumps(summary, indent=2) + "\n")
         log.info("wrote trajectory_online.txt and tracker_stats.json to %s", out)
 

@@ -149,6 +149,7 @@ def test_a_frame_solved_far_from_its_guess_is_solved_again_from_it_by_the_window
         assert state is not None
         turned = pose.rotation_angle(pose.compose(pose.invert(guess), state.T_wc)[:3, :3])
         ends[limit] = (state.T_wc.clone(), float(turned))
+        assert f.refined == ([3] if limit == 0.5 else [])
     direct, refined = ends[180.0], ends[0.5]
     assert torch.equal(direct[0], ends[0.0][0])  # as without the option
     assert direct[1] > math.radians(0.5)  # the direct solve left the guess by more
