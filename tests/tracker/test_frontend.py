@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 import torch
-from walls import CAM
+from walls import CAM, textured_wall_image, wall
 
 from dimslam.common.config import PRESETS
 from dimslam.common.geometry import pose
@@ -128,8 +128,6 @@ def test_a_frame_solved_far_from_its_guess_is_solved_again_from_it_by_the_window
     """`tracker.window_refine_deg`: a frame whose direct solve turned it more than that from
     its motion guess takes the window objective's end from the guess; above the turn the
     direct solve's pose stays, bit for bit as without the option."""
-    from walls import textured_wall_image, wall
-
     truth = [pose.exp_se3(torch.tensor([0.02 * i, 0.0, 0.0, 0.0, 0.0, 0.0])) for i in range(4)]
     # The frames before it carry a turn on that the camera does not make: the guess is 1.7
     # degrees off in rotation, where the images pull the solve.
