@@ -170,9 +170,7 @@ class BackEnd:
             ends = refiner.refine(self.field, local, older, cfg.refine_keyframes, [tracked, guess])
             if ends[0] is None or ends[1] is None:
                 continue
-            apart = math.degrees(
-                pose.rotation_angle(pose.compose(pose.invert(ends[0][0]), ends[1][0])[:3, :3])
-            )
+            apart = math.degrees(pose.angle_between(ends[0][0], ends[1][0]))
             log.debug(
                 "keyframe %d: refined ends %.2f deg apart, objective %.5f (tracked) %.5f (guess)",
                 kf.index,

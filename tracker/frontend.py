@@ -225,7 +225,7 @@ class FrontEnd:
         if cfg.tracker.window_refine_deg <= 0 or not isinstance(self.tracker, DirectTracker):
             return
         newest = local[-1]
-        turned = pose.rotation_angle(pose.compose(pose.invert(guess), newest.T_wc)[:3, :3])
+        turned = pose.angle_between(guess, newest.T_wc)
         if math.degrees(turned) <= cfg.tracker.window_refine_deg:
             return
         sources = [f for f in local if f.rgb is not None]

@@ -169,6 +169,12 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
     return log_so3(R).norm(dim=-1)
 
 
+def angle_between(T_a: torch.Tensor, T_b: torch.Tensor) -> torch.Tensor:
+    """Rotation angle in radians `(...)` from the orientation of poses `T_a` to that of
+    `T_b` (both `(..., 4, 4)`)."""
+    return rotation_angle(T_a[..., :3, :3].transpose(-1, -2) @ T_b[..., :3, :3])
+
+
 def quat_to_matrix(q_xyzw: torch.Tensor) -> torch.Tensor:
     """Rotation matrices `(..., 3, 3)` from quaternions `(..., 4)` in TUM order (x, y, z, w).
 

@@ -145,7 +145,7 @@ def test_a_frame_solved_far_from_its_guess_is_solved_again_from_it_by_the_window
         guess = f.guess(3)
         state = f.track(wall, 3, 0.1, textured_wall_image(truth[3]))
         assert state is not None
-        turned = pose.rotation_angle(pose.compose(pose.invert(guess), state.T_wc)[:3, :3])
+        turned = pose.angle_between(guess, state.T_wc)
         ends[limit] = (state.T_wc.clone(), float(turned))
         assert f.refined == ([3] if limit == 0.5 else [])
     direct, refined = ends[180.0], ends[0.5]

@@ -32,6 +32,13 @@ def test_log_near_pi_is_stable():
     assert pose.rotation_angle(R).item() == pytest.approx(math.pi - 1e-6, abs=1e-6)
 
 
+def test_the_angle_between_two_poses_is_their_relative_rotation_s_whatever_the_translations():
+    a = pose.exp_se3(torch.tensor([0.3, -0.2, 1.0, 0.1, 0.2, -0.3], dtype=torch.float64))
+    turn = pose.exp_se3(torch.tensor([2.0, 0.0, -1.0, 0.0, 0.0, 0.25], dtype=torch.float64))
+    assert pose.angle_between(a, pose.compose(a, turn)).item() == pytest.approx(0.25, abs=1e-12)
+    assert pose.angle_between(a, a).item() == pytest.approx(0.0, abs=1e-6)
+
+
 def test_exp_is_rigid_and_matches_matrix_exponential():
     xi = random_twists(50, max_angle=3.0)
     T = pose.exp_se3(xi)
