@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -42,17 +43,43 @@ it runs ahead costs accuracy: 0 (wait for every round) tracks as well as one pro
 and as slowly (docs/results.md, "Service vs single process")."""
 
 
+LISTEN_PORTS = (20000, 32768)
+"""Where `loopback_endpoints` looks for free ports when the system's own range for outgoing
+connections cannot be read: Linux's default starts at 32768."""
+
+
+def _listen_ports() -> tuple[int, int]:
+    """A range of ports `[lo, hi)` below the one the system gives outgoing connections."""
+    try:
+        lo = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return LISTEN_PORTS
+    return (max(1024, lo // 2), lo) if lo > 2048 else LISTEN_PORTS
+
+
 def loopback_endpoints(count: int) -> list[str]:
     """`count` distinct free loopback endpoints, `tcp/127.0.0.1:<port>`.
 
-    The sockets stay bound until all ports are chosen: ports picked one at a time (bind to 0,
-    close, again) can repeat, and two sessions then fight over one port.
+    The ports lie below the system's range for outgoing connections: a port the system hands
+    out (bind to 0) may also be handed to a process's outgoing connection before the process
+    that is to listen on it has started (`make demo` once failed so, the mapper's port taken
+    while the tracker connected). The sockets stay bound until all ports are chosen, so that
+    one call never repeats a port.
     """
+    lo, hi = _listen_ports()
+    rng = random.Random()
     with ExitStack() as stack:
-        sockets = [stack.enter_context(socket.socket()) for _ in range(count)]
-        for s in sockets:
-            s.bind(("127.0.0.1", 0))
-        return [f"tcp/127.0.0.1:{s.getsockname()[1]}" for s in sockets]
+        ports: list[int] = []
+        for _ in range(count * 200):
+            s = stack.enter_context(socket.socket())
+            try:
+                s.bind(("127.0.0.1", rng.randrange(lo, hi)))
+            except OSError:
+                continue  # in use: another
+            ports.append(s.getsockname()[1])
+            if len(ports) == count:
+                return [f"tcp/127.0.0.1:{p}" for p in ports]
+    raise DimslamError(f"no {count} free loopback ports in {lo}-{hi - 1}")
 
 
 def _settings_args(cfg: SlamConfig) -> list[str]:

@@ -25,7 +25,7 @@ from dimslam.common.errors import DimslamError
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.mesh import EmptyMeshError
 from dimslam.common.net import transport
-from dimslam.common.net.launch import loopback_endpoints
+from dimslam.common.net.launch import _listen_ports, loopback_endpoints
 from dimslam.common.net.messages import SCHEMA, FrameMessage, MessageError
 from dimslam.common.net.transport import (
     MAPPER_PORT,
@@ -75,6 +75,18 @@ def _peers(listen_only: Path) -> Iterator[tuple[zenoh.Session, zenoh.Session, Ke
 
 
 # -- keys and configuration ------------------------------------------------------------------
+
+
+def test_listening_ports_are_distinct_and_below_the_outgoing_connections_range():
+    """A port from the range the system gives outgoing connections could be taken by one
+    before the process that is to listen on it starts (a `make demo` failed so)."""
+    ports = [int(ep.rsplit(":", 1)[1]) for ep in loopback_endpoints(8)]
+    assert len(set(ports)) == 8
+    lo, hi = _listen_ports()
+    assert all(lo <= p < hi for p in ports)
+    outgoing = Path("/proc/sys/net/ipv4/ip_local_port_range")
+    if outgoing.is_file():
+        assert hi <= int(outgoing.read_text().split()[0])
 
 
 def test_keys_are_namespaced_by_session_and_schema():
