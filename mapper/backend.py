@@ -167,8 +167,7 @@ class BackEnd:
             guess = carry_motion(
                 [(f.index, f.T_wc) for f in local[-3:-1]], kf.index, MAX_VELOCITY_STEPS
             )
-            steps = cfg.refine_keyframes
-            ends = refiner.refine(self.field, local, older, [(tracked, steps), (guess, steps)])
+            ends = refiner.refine(self.field, local, older, cfg.refine_keyframes, [tracked, guess])
             if ends[0] is None or ends[1] is None:
                 continue
             apart = math.degrees(pose.angle_between(ends[0][0], ends[1][0]))

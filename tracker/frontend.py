@@ -232,22 +232,8 @@ class FrontEnd:
         if len(sources) < 2:
             return
         refiner = Tracker(cfg.tracker, cfg.loss, cfg.render, self.camera, self.refine_generator)
-        starts = [(guess, cfg.tracker.iters)]
-        if cfg.tracker.window_refine_judge:
-            starts.append((newest.T_wc, 0))  # the direct solve's end, scored as it is
-        ends = refiner.refine(field, sources, keyframes, starts)
-        end = ends[0]
+        end = refiner.refine(field, sources, keyframes, cfg.tracker.iters, [guess])[0]
         if end is None:
-            return
-        if cfg.tracker.window_refine_judge and ends[1] is not None and ends[1][1] <= end[1]:
-            log.info(
-                "frame %d: %.2f deg from its guess; the window objective prefers the direct "
-                "solve's end (%.5f against %.5f from the guess)",
-                newest.index,
-                math.degrees(turned),
-                ends[1][1],
-                end[1],
-            )
             return
         newest.T_wc = end[0]
         self.refined.append(newest.index)

@@ -100,12 +100,6 @@ class TrackerConfig:
         "`iters` steps, its pose alone, the frames before it and the overlapping keyframes "
         "as sources) and takes that end (0: never).",
     )
-    window_refine_judge: bool = option(
-        False,
-        "direct: a frame solved again takes the window objective's end only where that "
-        "objective scores it lower than the direct solve's end (hand-held jerks are real "
-        "motions the direct solve follows; a slide is not).",
-    )
     colour: bool = option(
         False,
         "direct: solve on the three colour channels (three residuals per point, one "
@@ -208,21 +202,21 @@ class Tracker:
         field: FieldFn,
         local: list[FrameState],
         keyframes: list[FrameState],
-        starts: list[tuple[torch.Tensor, int]],
+        iters: int,
+        starts: list[torch.Tensor],
     ) -> list[tuple[torch.Tensor, float] | None]:
-        """Steps of the window objective on the pose of `local[-1]` alone (a keyframe or
-        not), every other frame of the window fixed, from each `(start, steps)` in turn (0
-        steps: the start only scored): per start its end and the objective there (None where
-        it diverged). One objective (pixels, depths and visibility mask, taken at the
-        frame's pose as given) scores every end, so they compare; every frame keeps its pose
-        as given."""
+        """`iters` steps of the window objective on the pose of `local[-1]` alone (a keyframe
+        or not), every other frame of the window fixed, from each of `starts` in turn: per
+        start its end and the objective there (None where it diverged). One objective
+        (pixels, depths and visibility mask, taken at the frame's pose as given) scores every
+        end, so they compare; every frame keeps its pose as given."""
         newest = local[-1]
         window = self._window(field, local, keyframes)
         given = [f.T_wc for f in window]  # `minimize` writes every pose back, normalized
         movable = [f is newest for f in window]
         objective = self._objective(field, window, movable)
         ends: list[tuple[torch.Tensor, float] | None] = []
-        for start, iters in starts:
+        for start in starts:
             newest.T_wc = start.clone()
             try:
                 minimize(

@@ -130,7 +130,7 @@ def test_a_keyframe_takes_the_refined_end_from_the_motion_where_the_two_ends_dif
     frames[3].T_wc = truth[3].clone()
     # One objective scores every end; the frame keeps its pose as given.
     refiner = Tracker(cfg.tracker, cfg.loss, cfg.render, CAM, torch.Generator().manual_seed(0))
-    ends = refiner.refine(wall, frames[:5], [], [(truth[4], 0), (pose.compose(truth[4], off), 0)])
+    ends = refiner.refine(wall, frames[:5], [], 0, [truth[4], pose.compose(truth[4], off)])
     assert ends[0][1] < ends[1][1]
     assert torch.equal(frames[4].T_wc, truth[4])
     # Off: nothing moves.

@@ -153,26 +153,3 @@ def test_a_frame_solved_far_from_its_guess_is_solved_again_from_it_by_the_window
     assert direct[1] > math.radians(0.5)  # the direct solve left the guess by more
     assert not torch.equal(refined[0], direct[0])  # so the frame was solved again
     assert refined[1] < direct[1]  # from the guess, by a cost that holds nearer to it
-
-
-def test_a_judged_refinement_keeps_the_direct_solve_where_the_window_objective_prefers_it():
-    """`tracker.window_refine_judge`: a frame that leaves a wrong guess for its true pose
-    (as a hand-held jerk leaves the constant-velocity guess) keeps the direct solve's end,
-    which the window objective scores lower than the end of its steps from the guess."""
-    truth = [pose.exp_se3(torch.tensor([0.02 * i, 0.0, 0.0, 0.0, 0.0, 0.0])) for i in range(4)]
-    wrong = pose.compose(truth[3], pose.exp_se3(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.03, 0.0])))
-    poses = {}
-    for judge in (False, True):
-        cfg = PRESETS["tiny"]
-        tracking = replace(cfg.tracker, window_refine_deg=0.5, window_refine_judge=judge)
-        f = FrontEnd(replace(cfg, tracker=tracking), CAM, torch.Generator().manual_seed(0))
-        for i in range(3):
-            f.frames.append(FrameState(i, i / 30, textured_wall_image(truth[i]), truth[i], i == 0))
-        f.map_changed(wall, version=1)
-        f.next_guess = wrong.clone()
-        state = f.track(wall, 3, 0.1, textured_wall_image(truth[3]))
-        assert state is not None
-        poses[judge] = state.T_wc.clone()
-        assert f.refined == ([] if judge else [3])
-    # Unjudged, the frame takes the steps' end from the wrong guess, farther from the truth.
-    assert pose.angle_between(poses[True], truth[3]) < pose.angle_between(poses[False], truth[3])
