@@ -228,6 +228,15 @@ class FrontEnd:
         turned = pose.angle_between(guess, newest.T_wc)
         if math.degrees(turned) <= cfg.tracker.window_refine_deg:
             return
+        seen = self._turn_seen(guess, newest.T_wc, keyframes)
+        if 0 < cfg.tracker.window_refine_seen <= seen:
+            log.info(
+                "frame %d: %.2f deg from its guess, %.2f of it seen: kept",
+                newest.index,
+                math.degrees(turned),
+                seen,
+            )
+            return
         sources = [f for f in local if f.rgb is not None]
         if len(sources) < 2:
             return
@@ -238,10 +247,34 @@ class FrontEnd:
         newest.T_wc = end[0]
         self.refined.append(newest.index)
         log.info(
-            "frame %d: %.2f deg from its guess; refined from the guess by the window objective",
+            "frame %d: %.2f deg from its guess, %.2f of it seen; refined from the guess by the "
+            "window objective",
             newest.index,
             math.degrees(turned),
+            seen,
         )
+
+    def _turn_seen(
+        self, guess: torch.Tensor, end: torch.Tensor, keyframes: list[FrameState]
+    ) -> float:
+        """How much of the image motion that the rotation from `guess` to `end` alone gives
+        the reference points is left with the translation between them added (medians over
+        the points): near 0 where the translation hides the turn (the turn-or-slide of a
+        narrow view), near 1 or above for a turn the images see. NaN without points."""
+        refs = getattr(self.tracker, "references", {})
+        points = [refs[kf.index].world() for kf in keyframes if kf.index in refs]
+        if not points:
+            return math.nan
+        p = pose.transform_points(pose.invert(guess), torch.cat(points))
+        p = p[p[:, 2] > 0]
+        delta = pose.compose(pose.invert(end), guess)  # guess camera -> end camera
+        turned = p @ delta[:3, :3].T
+        moved = turned + delta[:3, 3]
+
+        def flow(q: torch.Tensor) -> torch.Tensor:
+            return (q[:, :2] / q[:, 2:] - p[:, :2] / p[:, 2:]).norm(dim=-1).median()
+
+        return float(flow(moved) / flow(turned).clamp_min(1e-12))
 
     def _references(self, keyframes: list[FrameState]) -> list[FrameState]:
         """The keyframes a frame is tracked against, and, while frame 0 is the only one

@@ -100,6 +100,13 @@ class TrackerConfig:
         "`iters` steps, its pose alone, the frames before it and the overlapping keyframes "
         "as sources) and takes that end (0: never).",
     )
+    window_refine_seen: float = option(
+        0.0,
+        "direct: solve again only where the images see less than this share of the turn "
+        "from the guess: the translation of the same departure hides the rest (a narrow "
+        "view's turn-or-slide; a hand-held jerk is a turn the images see). 0: every frame "
+        "past `window_refine_deg`.",
+    )
     colour: bool = option(
         False,
         "direct: solve on the three colour channels (three residuals per point, one "
