@@ -220,7 +220,10 @@ class FrontEnd:
         too far and step back) into a minimum of its cost; the window objective, with the
         frames before it as sources and its visibility mask, holds such a turn from the
         motion guess, where the Adam tracker starts every frame (docs/results.md, sessions
-        17-18)."""
+        17-18). With `window_refine_seen`, only a departure whose turn the images hardly see
+        starts such a stretch (a jerk of a hand-held camera is a turn they see), and every
+        departure right after a frame solved again continues it: within a slide the share
+        seen swings (room5 seed 0: 0.16-1.06)."""
         cfg = self.cfg
         if cfg.tracker.window_refine_deg <= 0 or not isinstance(self.tracker, DirectTracker):
             return
@@ -229,7 +232,8 @@ class FrontEnd:
         if math.degrees(turned) <= cfg.tracker.window_refine_deg:
             return
         seen = self._turn_seen(guess, newest.T_wc, keyframes)
-        if 0 < cfg.tracker.window_refine_seen <= seen:
+        sliding = len(self.frames) > 1 and self.refined[-1:] == [self.frames[-2].index]
+        if 0 < cfg.tracker.window_refine_seen <= seen and not sliding:
             log.info(
                 "frame %d: %.2f deg from its guess, %.2f of it seen: kept",
                 newest.index,

@@ -104,8 +104,8 @@ class TrackerConfig:
         0.0,
         "direct: solve again only where the images see less than this share of the turn "
         "from the guess: the translation of the same departure hides the rest (a narrow "
-        "view's turn-or-slide; a hand-held jerk is a turn the images see). 0: every frame "
-        "past `window_refine_deg`.",
+        "view's turn-or-slide; a hand-held jerk is a turn the images see), or right after "
+        "a frame solved again. 0: every frame past `window_refine_deg`.",
     )
     colour: bool = option(
         False,

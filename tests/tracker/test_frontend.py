@@ -157,19 +157,21 @@ def test_a_frame_solved_far_from_its_guess_is_solved_again_from_it_by_the_window
 
 def test_a_turn_the_images_see_is_kept_where_only_hidden_turns_are_solved_again():
     """`tracker.window_refine_seen`: a frame that leaves a wrong guess by a turn the images
-    see (a hand-held jerk) keeps the direct solve's end; a departure whose translation
-    hides its turn from the images (a narrow view's turn-or-slide) measures near 0."""
+    see (a hand-held jerk) keeps the direct solve's end, unless the frame before it was
+    solved again (a slide goes on); a departure whose translation hides its turn from the
+    images (a narrow view's turn-or-slide) measures near 0."""
     truth = [pose.exp_se3(torch.tensor([0.02 * i, 0.0, 0.0, 0.0, 0.0, 0.0])) for i in range(4)]
     turn = pose.exp_se3(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.03, 0.0]))
     # The wall is 2 ahead: turning by a about y and stepping -2a along x keeps its centre.
     slide = pose.make_pose(turn[:3, :3], torch.tensor([-0.06, 0.0, 0.0]))
-    for seen, refined in ((0.0, [3]), (0.5, [])):
+    for seen, before, refined in ((0.0, [], [3]), (0.5, [], []), (0.5, [2], [2, 3])):
         cfg = PRESETS["tiny"]
         tracking = replace(cfg.tracker, window_refine_deg=0.5, window_refine_seen=seen)
         f = FrontEnd(replace(cfg, tracker=tracking), CAM, torch.Generator().manual_seed(0))
         for i in range(3):
             f.frames.append(FrameState(i, i / 30, textured_wall_image(truth[i]), truth[i], i == 0))
         f.map_changed(wall, version=1)
+        f.refined = list(before)
         f.next_guess = pose.compose(truth[3], turn)
         state = f.track(wall, 3, 0.1, textured_wall_image(truth[3]))
         assert state is not None and f.refined == refined
