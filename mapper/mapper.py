@@ -121,6 +121,11 @@ class MapperConfig:
     prior_iters: int = option(200, "Iterations fitting the initial plane at the gauge depth.")
     gauge_depth: float = option(2.0, "Median depth of frame 0 in map units (scale gauge).")
     gauge_weight: float = option(1.0, "Weight of the scale gauge penalty during init.")
+    prior_stop: bool = option(
+        True,
+        "With render.normalize_depth, the initial plane is also fitted to stop every ray "
+        "(a normalized depth is met by rays that barely stop).",
+    )
     stereo_weight: float = option(
         0.0,
         "Weight of the multi-view depth target: in mapping rounds the depth rendered at a "
@@ -244,7 +249,7 @@ class Mapper:
                 self.field, self.camera, uv, first.T_wc, self.render_cfg, self.generator
             )
             loss = (out.depth - self.cfg.gauge_depth).abs().mean()
-            if self.render_cfg.normalize_depth:
+            if self.render_cfg.normalize_depth and self.cfg.prior_stop:
                 # A normalized depth is met by rays that barely stop: the plane must stop them.
                 loss = loss + (1 - out.opacity).mean()
             optimizer.zero_grad(set_to_none=True)

@@ -29,11 +29,6 @@ FieldFn = Callable[..., FieldOutput]
 """A map: `(N, 3)` points (and `with_color=`) -> `FieldOutput` (e.g. `Field`)."""
 
 
-MIN_OPACITY = 1e-2
-"""Normalized depth divides by at least this opacity: a ray through empty space keeps a
-bounded depth and gradient."""
-
-
 @dataclass(frozen=True)
 class RenderConfig:
     """Sampling along rays; depths in map units."""
@@ -55,11 +50,21 @@ class RenderConfig:
         "Rendered depth is the mean depth of the ray's weights (their sum times depth divided "
         "by the ray's opacity; False: not divided, the paper's, which renders a ray that does "
         "not quite stop nearer than where it stops and so shrinks the map). On, the plane the "
-        "map starts from is also made to stop every ray (mapper.fit_prior).",
+        "map starts from is also made to stop every ray (mapper.prior_stop).",
+    )
+    normalize_floor: float = option(
+        0.01,
+        "Normalized depth divides by at least this opacity: a ray through empty space keeps a "
+        "bounded depth and gradient; at 1 the depth is not divided at all.",
     )
     surface_band: float = option(
         0.15, "Surface samples cover the rendered depth +- this fraction of it."
     )
+
+    def __post_init__(self) -> None:
+        if not 0 < self.normalize_floor <= 1:
+            floor = self.normalize_floor
+            raise ValueError(f"render.normalize_floor must be in (0, 1], got {floor}")
 
 
 @dataclass(frozen=True)
@@ -252,7 +257,7 @@ def render_rays(
     rgb = (w[..., None] * out.rgb.view(R, S, 3)).sum(dim=1)
     opacity = w.sum(dim=-1)
     if cfg.normalize_depth:
-        depth = depth / opacity.clamp_min(MIN_OPACITY)
+        depth = depth / opacity.clamp_min(cfg.normalize_floor)
     return RenderOutput(depth=depth, rgb=rgb, opacity=opacity)
 
 

@@ -1,5 +1,7 @@
 """The renderer: a known occupancy step renders the right depth; weights and sampling."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -54,6 +56,29 @@ def test_tilted_plane_from_a_moved_camera():
     o, d = camera_rays(CAM, uv, T_wc)
     t_true = (3.0 - (o[:, 0] + o[:, 2])) / (d[:, 0] + d[:, 2])  # unit-z directions: t is z-depth
     assert torch.allclose(out.depth, t_true, atol=0.01)
+
+
+def test_normalized_depth_divides_by_the_opacity_down_to_its_floor():
+    # A veil that stops 0.6 of each ray at one of its evenly spaced samples: the paper's depth
+    # renders it at 0.6 of its depth, a normalized one at its depth; a floor above the opacity
+    # divides by the floor instead.
+    cfg = RenderConfig(near=0.1, far=6.0, n_stratified=64, importance_rounds=0)
+    wall = 0.1 + (6.0 - 0.1) * 20.5 / 64  # a sample's depth, about 1.99
+
+    def veil(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
+        occ = 0.6 * ((p[:, 2] - wall).abs() < 0.03).float()
+        return FieldOutput(occ, torch.zeros_like(p))
+
+    uv = torch.tensor([[19.5, 14.5]])
+    plain = render_pixels(veil, CAM, uv, torch.eye(4), cfg)
+    assert plain.opacity.item() == pytest.approx(0.6, rel=1e-4)
+    assert plain.depth.item() == pytest.approx(0.6 * wall, rel=1e-4)
+    for floor, expected in ((0.01, wall), (0.6, wall), (0.8, wall * 0.6 / 0.8)):
+        norm = replace(cfg, normalize_depth=True, normalize_floor=floor)
+        out = render_pixels(veil, CAM, uv, torch.eye(4), norm)
+        assert out.depth.item() == pytest.approx(expected, rel=1e-4)
+    with pytest.raises(ValueError, match="normalize_floor"):
+        RenderConfig(normalize_floor=0.0)
 
 
 def test_importance_sampling_concentrates_on_the_surface():
