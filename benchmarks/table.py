@@ -163,7 +163,7 @@ def table(results: dict) -> str:
             ates = ", ".join(_ate_cell(s) for s in seeds.values())
             mean, against = r.get("mean_m"), r.get("against_m")
             ratio = f"{mean / against:.2f}x" if mean and against else "-"
-            to_base = f"{mean / base:.2f}x" if mean and base else "-"
+            to_base = f"{mean / base:.2f}x" if mean and base and stride != 1 else "-"
             lost = ", ".join(str(s.get("lost", "-")) for s in seeds.values())
             spread = ", ".join(
                 "-" if s.get("spread") is None else f"{100 * s['spread']:.0f} %"
