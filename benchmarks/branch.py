@@ -59,7 +59,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, write_tum
 from dimslam.common.map.render import FieldFn
 from dimslam.common.optim.window import FrameState, TrackingLost
-from dimslam.common.options import apply_overrides
+from dimslam.common.options import apply_overrides, setting
 from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import Tracker, TrackResult
@@ -70,14 +70,16 @@ TRUTH_FRAMES = 30
 
 
 def parse_variant(text: str) -> dict[str, str]:
-    """`key=value;key=value` -> overrides; only the tracking side's settings."""
-    out = {}
-    for part in filter(None, (p.strip() for p in text.split(";"))):
-        key, sep, value = part.partition("=")
-        if not sep or not key.startswith(SECTIONS):
-            raise ValueError(f"{part!r}: want key=value with a key in {', '.join(SECTIONS)}")
-        out[key.strip()] = value.strip()
-    return out
+    """`key=value;key=value` -> overrides; only the tracking side's settings.
+
+    Raises:
+        argparse.ArgumentTypeError: a part that is not `key=value`, or a key elsewhere.
+    """
+    pairs = [setting(part) for part in filter(None, (p.strip() for p in text.split(";")))]
+    outside = [key for key, _ in pairs if not key.startswith(SECTIONS)]
+    if outside:
+        raise argparse.ArgumentTypeError(f"{outside}: only keys in {', '.join(SECTIONS)}")
+    return dict(pairs)
 
 
 def switch(slam: Slam, overrides: dict[str, str]) -> None:
@@ -267,12 +269,14 @@ def main() -> None:
         "where a direct solve from an Adam variant's pose ends",
     )
     args = p.parse_args()
-    try:
-        variants = [parse_variant(v) for v in args.variant]
-    except ValueError as e:
-        p.error(str(e))
     torch.set_num_threads(1)
     cfg = apply_overrides(PRESETS[args.preset], {"seed": str(args.seed)})
+    try:  # not key=value, an unknown key or a wrong type: refused before the first part runs
+        variants = [parse_variant(v) for v in args.variant]
+        for variant in variants:
+            apply_overrides(cfg, variant)
+    except (argparse.ArgumentTypeError, ValueError) as e:
+        p.error(str(e))
     reader = open_dataset(args.dataset, options=ReaderOptions(width=cfg.width or None))
     gt = reader.ground_truth()
     if gt is None:

@@ -58,12 +58,12 @@ from dimslam.common.optim.window import (
     optimize_window,
     random_pixels,
 )
-from dimslam.common.options import apply_overrides
+from dimslam.common.options import apply_overrides, setting
 from dimslam.common.slam import Slam
 
 
 def load(args):
-    cfg = apply_overrides(PRESETS[args.preset], dict(o.split("=", 1) for o in args.set))
+    cfg = apply_overrides(PRESETS[args.preset], dict(args.set))
     end = args.frames * args.stride
     options = ReaderOptions(width=cfg.width or None, end=end, stride=args.stride)
     reader = open_dataset(args.seq, options=options)
@@ -497,7 +497,7 @@ def cmd_basin(args) -> None:
 
     if args.rounds <= 0:
         return
-    more = apply_overrides(cfg, dict(o.split("=", 1) for o in args.then))
+    more = apply_overrides(cfg, dict(args.then))
     mapper.cfg = dataclasses.replace(more.mapper, pose_lr=0.0)
     mapper.loss_cfg, mapper.render_cfg = more.loss, more.render
     far = known & (true > 0.7 * true.max())
@@ -510,9 +510,10 @@ def cmd_basin(args) -> None:
             flush=True,
         )
 
+    then = " ".join(f"{k}={v}" for k, v in args.then)
     print(
         f"{args.rounds} more mapping rounds of frames {[f.index for f in recent]} "
-        f"at their true poses{' with ' + ' '.join(args.then) if args.then else ''}:"
+        f"at their true poses{' with ' + then if then else ''}:"
     )
     for f in recent:  # the tracker released the images of the frames no window holds
         if f.rgb is None:
@@ -680,6 +681,7 @@ def main() -> None:
         "--then",
         nargs="*",
         action="extend",
+        type=setting,
         default=[],
         metavar="SECTION.FIELD=VALUE",
         help="basin: settings of the extra mapping rounds only",
@@ -693,9 +695,18 @@ def main() -> None:
         "frames, fit iterations and width)",
     )
     parser.add_argument(
-        "--set", nargs="*", action="extend", default=[], metavar="SECTION.FIELD=VALUE"
+        "--set",
+        nargs="*",
+        action="extend",
+        type=setting,
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
     )
     args = parser.parse_args()
+    try:  # an unknown key or a wrong type: refused before anything runs
+        apply_overrides(PRESETS[args.preset], {**dict(args.set), **dict(args.then)})
+    except ValueError as e:
+        parser.error(str(e))
     logging.basicConfig(level=logging.WARNING)
     torch.manual_seed(0)
     COMMANDS[args.command](args)

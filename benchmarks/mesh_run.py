@@ -28,7 +28,7 @@ from dimslam.common.io.trajectory import read_tum
 from dimslam.common.map.mesh import write_mesh
 from dimslam.common.net.exchange import load_map
 from dimslam.common.net.messages import MapSnapshot
-from dimslam.common.options import apply_overrides, flat_settings
+from dimslam.common.options import apply_overrides, flat_settings, setting
 from dimslam.mapper.mapper import Mapper
 
 
@@ -36,13 +36,18 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("out", type=Path)
     p.add_argument("dataset")
-    p.add_argument("--set", nargs="*", action="extend", default=[], metavar="SECTION.FIELD=V")
+    p.add_argument(
+        "--set", nargs="*", action="extend", type=setting, default=[], metavar="SECTION.FIELD=V"
+    )
     args = p.parse_args()
     recorded = json.loads((args.out / "config.json").read_text())
     settings = flat_settings({k: v for k, v in recorded.items() if k in ("map", "render", "loss",
                               "tracker", "mapper", "width", "seed")})  # fmt: skip
-    settings.update(dict(s.split("=", 1) for s in args.set))
-    cfg = apply_overrides(PRESETS["paper"], settings)
+    settings.update(dict(args.set))
+    try:
+        cfg = apply_overrides(PRESETS["paper"], settings)
+    except ValueError as e:
+        p.error(str(e))
     camera = open_dataset(args.dataset, options=ReaderOptions(width=cfg.width or None)).camera
     snap = MapSnapshot.from_bytes((args.out / "map.msgpack").read_bytes())
     mapper = Mapper(

@@ -59,7 +59,7 @@ from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.synth import FPS, SynthScene, default_camera
 from dimslam.common.map.field import make_field
 from dimslam.common.optim.window import FrameState, TrackingLost, adam, image_tensor
-from dimslam.common.options import apply_overrides
+from dimslam.common.options import apply_overrides, setting
 from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import INIT_START, MapperConfig
 from dimslam.tracker.tracker import Tracker
@@ -342,7 +342,7 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
     """Every figure of one preset."""
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    cfg = apply_overrides(PRESETS[name], dict(kv.split("=", 1) for kv in args.set))
+    cfg = apply_overrides(PRESETS[name], dict(args.set))
     # The cheap initialization times only its final phase, every init frame in the window: the
     # estimate below prices the growing phase (fewer frames) at that rate too, an upper bound.
     init = {
@@ -381,7 +381,7 @@ def bench(name: str, args: argparse.Namespace, device: torch.device) -> dict:
         steps["prior_ms_per_iter"] * cfg.mapper.prior_iters
         + steps["init_ms_per_iter"] * init_iterations(cfg.mapper)
     ) / 1e3
-    result = {"preset": name, "set": args.set, "size": [camera.width, camera.height], **steps}
+    result = {"preset": name, "set": dict(args.set), "size": [camera.width, camera.height], **steps}
     log.info("%s: timing the tracking step per frame", name)
     track_cfg = cfg
     if args.track_init_iters is not None:
@@ -516,6 +516,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--set",
         action="append",
+        type=setting,
         default=[],
         metavar="KEY=VALUE",
         help="override a setting of every preset, e.g. render.surface_samples=12 (repeatable)",
@@ -531,8 +532,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("need --repeats, --init-iters, --track-frames, --track-init-iters >= 1")
     if args.frames < 3 or args.adam_frames < 0:
         parser.error("need --frames >= 3 and --adam-frames >= 0")
-    if any("=" not in kv for kv in args.set):
-        parser.error("--set takes KEY=VALUE")
+    for name in names:  # an unknown key or a wrong type: refused before anything runs
+        try:
+            apply_overrides(PRESETS[name], dict(args.set))
+        except ValueError as e:
+            parser.error(f"--set: {e}")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = device_for(args.device)

@@ -37,7 +37,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from dimslam.common.config import PRESETS
-from dimslam.common.options import apply_overrides
+from dimslam.common.options import apply_overrides, setting
 
 DATASETS = (
     "../shared/data/room0",
@@ -53,22 +53,6 @@ def _ints(text: str) -> list[int]:
     if not values or min(values) < 0:
         raise argparse.ArgumentTypeError(f"want comma-separated numbers, got {text!r}")
     return values
-
-
-def parse_sets(preset: str, sets: list[str]) -> dict[str, str]:
-    """`KEY=VALUE` texts as a dict, each checked against the preset's settings.
-
-    Raises:
-        ValueError: a text without `=`, an unknown setting or a value of the wrong type.
-    """
-    pairs = {}
-    for text in sets:
-        key, eq, value = text.partition("=")
-        if not eq or not key:
-            raise ValueError(f"--set takes KEY=VALUE, got {text!r}")
-        pairs[key] = value
-    apply_overrides(PRESETS[preset], pairs)
-    return pairs
 
 
 def claim(out: Path, preset: str, sets: dict[str, str]) -> None:
@@ -186,6 +170,7 @@ def main() -> int:
     p.add_argument(
         "--set",
         action="append",
+        type=setting,
         default=[],
         metavar="KEY=VALUE",
         help="a setting of every run, e.g. render.normalize_depth=true (repeatable)",
@@ -206,7 +191,8 @@ def main() -> int:
     if args.against is not None and not args.against.is_dir():
         p.error(f"--against: no folder at {args.against}")
     try:
-        sets = parse_sets(args.preset, args.set)
+        sets = dict(args.set)
+        apply_overrides(PRESETS[args.preset], sets)  # an unknown key or a wrong type: refused
         if not args.report:
             claim(args.out, args.preset, sets)
     except ValueError as e:

@@ -107,6 +107,20 @@ def apply_overrides(cfg: T, overrides: dict[str, str]) -> T:
     return cfg
 
 
+def setting(text: str) -> tuple[str, str]:
+    """One `KEY=VALUE` text, as a benchmark's `--set` takes it: `(key, value)` for
+    `apply_overrides` (the argparse `type=` of such flags; `dict()` of their list is the
+    overrides).
+
+    Raises:
+        argparse.ArgumentTypeError: no `=`, or nothing before it.
+    """
+    key, eq, value = text.partition("=")
+    if not eq or not key.strip():
+        raise argparse.ArgumentTypeError(f"want KEY=VALUE, got {text!r}")
+    return key.strip(), value.strip()
+
+
 def _replace_path(cfg: Any, path: list[str], value: Any) -> Any:
     if len(path) == 1:
         return dataclasses.replace(cfg, **{path[0]: value})

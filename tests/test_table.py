@@ -47,13 +47,17 @@ def test_a_table_runs_with_its_settings_resumes_and_refuses_other_settings(
     assert "holds runs of other settings" in capsys.readouterr().err
 
 
-def test_settings_are_checked_before_anything_runs(table):
-    assert table.parse_sets("cpu", ["render.normalize_floor=0.5"]) == {
-        "render.normalize_floor": "0.5"
-    }
-    with pytest.raises(ValueError, match="unknown setting"):
-        table.parse_sets("cpu", ["render.no_such=1"])
-    with pytest.raises(ValueError, match="KEY=VALUE"):
-        table.parse_sets("cpu", ["render.normalize_floor"])
-    with pytest.raises(ValueError, match="cannot use"):
-        table.parse_sets("cpu", ["tracker.iters=many"])
+def test_settings_are_checked_before_anything_runs(table, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out"
+    for bad, said in (
+        ("render.normalize_floor", "want KEY=VALUE"),
+        ("render.no_such=1", "unknown setting"),
+        ("tracker.iters=many", "cannot use"),
+    ):
+        argv = ["table.py", "--out", str(out), "--datasets", str(tmp_path), "--set", bad]
+        monkeypatch.setattr("sys.argv", argv)
+        with pytest.raises(SystemExit) as e:
+            table.main()
+        assert e.value.code == 2
+        assert said in capsys.readouterr().err
+    assert not out.exists()
