@@ -126,6 +126,13 @@ class MapperConfig:
         "With render.normalize_depth, the initial plane is also fitted to stop every ray "
         "(a normalized depth is met by rays that barely stop).",
     )
+    pose_gate: float = option(
+        0.0,
+        "Mapping and global rounds: rays the map stops less than this (their opacity) move "
+        "the map but no pose. A surface newly in view starts where the map's empty space "
+        "renders, and with little parallax the poses would follow it there (room0's turns "
+        "with render.normalize_depth, docs/results.md); 0: every ray moves both.",
+    )
     stereo_weight: float = option(
         0.0,
         "Weight of the multi-view depth target: in mapping rounds the depth rendered at a "
@@ -151,6 +158,10 @@ class MapperConfig:
         "Fuse the depth on every other grid point first, at full resolution only near the "
         "surface (5x faster; islands under two voxels are lost).",
     )
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.pose_gate <= 1:
+            raise ValueError(f"mapper.pose_gate must be in [0, 1], got {self.pose_gate}")
 
 
 @dataclass(frozen=True)
@@ -453,6 +464,7 @@ class Mapper:
             max_loss=float("inf"),
             surface=True,
             extra_loss=self._stereo(window),
+            pose_gate=self.cfg.pose_gate,
         )
         return MapRound(stats, tuple(f.index for f in window))
 
@@ -572,6 +584,7 @@ class Mapper:
                 generator=self.generator,
                 smooth=True,
                 max_loss=float("inf"),
+                pose_gate=self.cfg.pose_gate,
             )
             remaining -= chunk
         return stats

@@ -61,6 +61,22 @@ class WindowLoss:
     depth: torch.Tensor
 
 
+class _GradientMask(torch.autograd.Function):
+    """Identity on `(M, ...)` values; their gradient times `mask` `(M,)`, read at backward
+    time, so the caller may fill `mask` in place after the forward pass (not through
+    `save_for_backward`, which would refuse the change)."""
+
+    @staticmethod
+    def forward(ctx, values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        ctx.mask = mask
+        return values.view_as(values)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        shape = (-1,) + (1,) * (grad.dim() - 1)
+        return grad * ctx.mask.view(shape), None
+
+
 def pixel_colors(images: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Observed colours `(M, 3)` of integer pixels `uv` `(M, 2)` in frames `frame` `(M,)`."""
     u, v = uv[:, 0].long(), uv[:, 1].long()
@@ -88,6 +104,7 @@ def window_objective(
     generator: torch.Generator | None = None,
     smooth: bool = False,
     prior: DepthPrior | None = None,
+    pose_gate: float = 0.0,
 ) -> WindowLoss:
     """Evaluate the objective on pixels of a window.
 
@@ -105,18 +122,30 @@ def window_objective(
         smooth: add the smoothness term (mapping).
         prior: the depths the window's rays are known to end near (`RenderConfig`'s surface
             sampling), or None.
+        pose_gate: rays whose opacity is below this are rendered and warped as if the poses
+            were fixed: they move the map, not the poses (0: every ray moves both).
     """
     check_shape("poses", poses, (images.shape[0], 4, 4))
     check_shape("uv", uv, (frame.shape[0], 2))
     near = prior(frame, uv) if prior is not None else None
-    out = render_pixels(field, camera, uv, poses[frame], render_cfg, generator, depth_prior=near)
+    source = poses[frame]
+    gated = pose_gate > 0 and poses.requires_grad
+    if gated:  # which rays pass the gate is known once they are rendered, before any backward
+        placed = torch.ones(frame.shape, dtype=poses.dtype, device=poses.device)
+        source = _GradientMask.apply(source, placed)
+    out = render_pixels(field, camera, uv, source, render_cfg, generator, depth_prior=near)
     render_term = losses.render_l1(out.rgb, pixel_colors(images, frame, uv))
 
     # Every pixel's patch is warped into every window frame in one call, its own frame masked
     # out: one image lookup for the window instead of one per source frame.
     offsets = losses.patch_offsets(max(cfg.patch_sizes), dtype=uv.dtype, device=uv.device)
     n_frames = images.shape[0]
-    warp = losses.warp_patches(uv, out.depth, poses[frame], poses, camera, offsets)
+    warp = losses.warp_patches(uv, out.depth, source, poses, camera, offsets)
+    if gated:
+        placed.copy_(out.opacity.detach() >= pose_gate)
+        still = losses.warp_patches(uv, out.depth, source, poses.detach(), camera, offsets)
+        chosen = placed.bool()[None, :, None, None]
+        warp = losses.WarpResult(torch.where(chosen, warp.uv, still.uv), warp.valid)
     others = frame != torch.arange(n_frames, device=frame.device)[:, None]  # (F, M)
     warp = losses.WarpResult(warp.uv, warp.valid & others[..., None])
     ref = patch_colors(images, frame, uv, offsets)

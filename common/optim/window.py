@@ -174,6 +174,7 @@ def optimize_window(
     extra_loss: Callable[[WindowLoss, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     max_loss: float = 10.0,
     surface: bool = False,
+    pose_gate: float = 0.0,
 ) -> WindowStats:
     """Minimize the window objective; write the optimized poses back into `frames`.
 
@@ -194,6 +195,7 @@ def optimize_window(
         max_loss: a total loss above this (or non-finite) means the optimization diverged.
         surface: sample rays around the depth the map renders for the window at the start
             (`RenderConfig.surface_samples`; a map that already holds the window's surfaces).
+        pose_gate: rays the map stops less than this move the map only (`window_objective`).
 
     Raises:
         TrackingLost: on divergence; the frames keep their poses from before the step.
@@ -218,6 +220,7 @@ def optimize_window(
             generator,
             smooth,
             prior,
+            pose_gate,
         )
         total = result.total
         if extra_loss is not None:
