@@ -312,9 +312,23 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
     """The map's scale at a frame: rendered over true depth (times the initialization's scale,
     so 1 means the scale the system started with), median and spread over the pixels, and
     the median over the textured pixels (the strongest tenth of the image gradient, where the
-    tracker draws its points: a textureless far wall mapped too near does not move it)."""
-    d, _ = render_image(slam.back.mapper.field, camera, frame.T_wc, slam.cfg.render)
+    tracker draws its points: a textureless far wall mapped too near does not move it), also
+    per third of the image's width with the median opacity there (a turn brings new surfaces
+    in from one side: where they start and whether the map stops their rays yet)."""
+    field = slam.back.mapper.field
+    d, _ = render_image(field, camera, frame.T_wc, slam.cfg.render)
     known = gt > 0
+    rows, cols = np.nonzero(known)
+    uv = torch.from_numpy(np.stack([cols, rows], 1)).float()
+    with torch.no_grad():
+        opacity = torch.cat(
+            [
+                render_pixels(
+                    field, camera, c, frame.T_wc, slam.cfg.render, with_color=False
+                ).opacity
+                for c in uv.split(8192)
+            ]
+        ).numpy()
     rendered, true = d.numpy()[known], gt[known]
     ratio = scale * rendered / true
     med = float(np.median(ratio))
@@ -332,9 +346,17 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
             "at that scale"
         )
     strong = _textured(frame.rgb, known)[known]
+    thirds = []
+    for k in range(3):
+        part = strong & (cols * 3 // known.shape[1] == k)
+        enough = part.sum() > 20
+        thirds.append(
+            f"{np.median(ratio[part]):.3f}@{np.median(opacity[part]):.2f}" if enough else "-"
+        )
     return (
         f"map scale {med:.3f} ({100 * within:.0f}% of pixels within 5%; "
         f"10th-90th percentile {p10:.2f}-{p90:.2f}{nearer}); "
+        f"thirds left/middle/right {' '.join(thirds)} (scale@opacity); "
         f"textured pixels {np.median(ratio[strong]):.3f}"
     )
 
@@ -378,7 +400,12 @@ def cmd_run(args) -> None:
         drift = np.linalg.norm(T[:3, 3] - gt.poses[-1][:3, 3])
         scale = ""
         if depths is not None and (n - 1) % args.depth_every == 0:
-            scale = depth_scale(slam, camera, slam.frames[-1], depths[n - 1], alignment.s)
+            if len(slam.frames) > 10:  # the last 10 frames' path over the true one
+                before = slam.frames[-11].T_wc.detach().double().numpy()
+                step = np.linalg.norm(T[:3, 3] - alignment.apply_poses(before[None])[0][:3, 3])
+                true_step = np.linalg.norm(gt.poses[-1][:3, 3] - gt.poses[-11][:3, 3])
+                scale = f"step {step / max(true_step, 1e-9):.3f}, "
+            scale += depth_scale(slam, camera, slam.frames[-1], depths[n - 1], alignment.s)
         print(
             f"frame {n - 1:3d} kf={int(slam.frames[-1].keyframe)} keyframes {len(slam.keyframes)} "
             f"drift {100 * drift:6.2f} cm  ATE so far {100 * m.ate_rmse_m:6.2f} cm  "

@@ -31,6 +31,16 @@ def test_run_at_true_poses_puts_every_tracked_frame_on_its_ground_truth(
     # The tracker's pixels on the built-in scene at true poses: the scale it started with.
     textured = [float(ln.split("textured pixels")[1]) for ln in scaled]
     assert all(0.8 < s < 1.25 for s in textured), scaled
+    # Each third of the view with its opacity; the last 10 frames' path at the true length.
+    for ln in scaled:
+        thirds = ln.split("thirds left/middle/right ")[1].split(" (")[0].split()
+        assert len(thirds) == 3, ln
+        for third in thirds:
+            if third != "-":
+                part_scale, opacity = map(float, third.split("@"))
+                assert 0.5 < part_scale < 2 and 0 <= opacity <= 1, ln
+        if "step " in ln:
+            assert 0.9 < float(ln.split("step ")[1].split(",")[0]) < 1.1, ln
 
 
 def test_basin_finds_the_warping_cost_lowest_near_the_true_depth(
