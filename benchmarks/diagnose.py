@@ -315,21 +315,19 @@ def depth_scale(slam: Slam, camera, frame: FrameState, gt: np.ndarray, scale: fl
     tracker draws its points: a textureless far wall mapped too near does not move it), also
     per third of the image's width with the median opacity there (a turn brings new surfaces
     in from one side: where they start and whether the map stops their rays yet)."""
-    field = slam.back.mapper.field
-    d, _ = render_image(field, camera, frame.T_wc, slam.cfg.render)
     known = gt > 0
     rows, cols = np.nonzero(known)
     uv = torch.from_numpy(np.stack([cols, rows], 1)).float()
-    with torch.no_grad():
-        opacity = torch.cat(
-            [
-                render_pixels(
-                    field, camera, c, frame.T_wc, slam.cfg.render, with_color=False
-                ).opacity
-                for c in uv.split(8192)
-            ]
-        ).numpy()
-    rendered, true = d.numpy()[known], gt[known]
+    with torch.no_grad():  # depth and opacity in one pass, only where the truth is known
+        outs = [
+            render_pixels(
+                slam.back.mapper.field, camera, c, frame.T_wc, slam.cfg.render, with_color=False
+            )
+            for c in uv.split(4096)
+        ]
+    rendered = torch.cat([o.depth for o in outs]).numpy()
+    opacity = torch.cat([o.opacity for o in outs]).numpy()
+    true = gt[known]
     ratio = scale * rendered / true
     med = float(np.median(ratio))
     within = float(np.mean(np.abs(ratio / med - 1) < 0.05))
