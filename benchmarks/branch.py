@@ -59,7 +59,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, write_tum
 from dimslam.common.map.render import FieldFn
 from dimslam.common.optim.window import FrameState, TrackingLost
-from dimslam.common.options import apply_overrides, setting
+from dimslam.common.options import apply_overrides, overrides_or_exit, setting
 from dimslam.common.slam import Slam
 from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import Tracker, TrackResult
@@ -257,7 +257,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("dataset", help="a dataset with ground truth")
     p.add_argument("--at", type=int, required=True, help="frames run once before the branches")
-    p.add_argument("--variant", action="append", required=True, help="'k=v;k=v' ('' as is)")
+    p.add_argument(
+        "--variant", type=parse_variant, action="append", required=True, help="'k=v;k=v' ('' as is)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     p.add_argument("--out", type=Path, default=Path("branch-out"), help="trajectories here")
@@ -271,12 +273,8 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(1)
     cfg = apply_overrides(PRESETS[args.preset], {"seed": str(args.seed)})
-    try:  # not key=value, an unknown key or a wrong type: refused before the first part runs
-        variants = [parse_variant(v) for v in args.variant]
-        for variant in variants:
-            apply_overrides(cfg, variant)
-    except (argparse.ArgumentTypeError, ValueError) as e:
-        p.error(str(e))
+    for variant in args.variant:  # an unknown key or a wrong type: refused before any part runs
+        overrides_or_exit(p, cfg, variant)
     reader = open_dataset(args.dataset, options=ReaderOptions(width=cfg.width or None))
     gt = reader.ground_truth()
     if gt is None:
@@ -293,7 +291,8 @@ def main() -> None:
     rest = list(frames)
     print(f"{args.at} frames in {time.perf_counter() - started:.0f} s; branching", flush=True)
     results = []
-    for k, (text, overrides) in enumerate(zip(args.variant, variants, strict=True)):
+    for k, overrides in enumerate(args.variant):
+        text = ";".join(f"{key}={value}" for key, value in overrides.items())
         out = args.out / str(k)
         out.mkdir(parents=True, exist_ok=True)
         pid = os.fork()

@@ -58,7 +58,7 @@ from dimslam.common.optim.window import (
     optimize_window,
     random_pixels,
 )
-from dimslam.common.options import apply_overrides, setting
+from dimslam.common.options import apply_overrides, overrides_or_exit, setting
 from dimslam.common.slam import Slam
 
 
@@ -728,10 +728,8 @@ def main() -> None:
         metavar="SECTION.FIELD=VALUE",
     )
     args = parser.parse_args()
-    try:  # an unknown key or a wrong type: refused before anything runs
-        apply_overrides(PRESETS[args.preset], {**dict(args.set), **dict(args.then)})
-    except ValueError as e:
-        parser.error(str(e))
+    # An unknown key or a wrong type: refused before anything runs.
+    overrides_or_exit(parser, PRESETS[args.preset], {**dict(args.set), **dict(args.then)})
     logging.basicConfig(level=logging.WARNING)
     torch.manual_seed(0)
     COMMANDS[args.command](args)

@@ -28,7 +28,7 @@ from dimslam.common.io.trajectory import read_tum
 from dimslam.common.map.mesh import write_mesh
 from dimslam.common.net.exchange import load_map
 from dimslam.common.net.messages import MapSnapshot
-from dimslam.common.options import apply_overrides, flat_settings, setting
+from dimslam.common.options import flat_settings, overrides_or_exit, setting
 from dimslam.mapper.mapper import Mapper
 
 
@@ -44,10 +44,7 @@ def main() -> None:
     settings = flat_settings({k: v for k, v in recorded.items() if k in ("map", "render", "loss",
                               "tracker", "mapper", "width", "seed")})  # fmt: skip
     settings.update(dict(args.set))
-    try:
-        cfg = apply_overrides(PRESETS["paper"], settings)
-    except ValueError as e:
-        p.error(str(e))
+    cfg = overrides_or_exit(p, PRESETS["paper"], settings)
     camera = open_dataset(args.dataset, options=ReaderOptions(width=cfg.width or None)).camera
     snap = MapSnapshot.from_bytes((args.out / "map.msgpack").read_bytes())
     mapper = Mapper(

@@ -59,7 +59,7 @@ from dimslam.common.io.datasets.base import Frame
 from dimslam.common.io.synth import FPS, SynthScene, default_camera
 from dimslam.common.map.field import make_field
 from dimslam.common.optim.window import FrameState, TrackingLost, adam, image_tensor
-from dimslam.common.options import apply_overrides, setting
+from dimslam.common.options import apply_overrides, overrides_or_exit, setting
 from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import INIT_START, MapperConfig
 from dimslam.tracker.tracker import Tracker
@@ -533,10 +533,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames < 3 or args.adam_frames < 0:
         parser.error("need --frames >= 3 and --adam-frames >= 0")
     for name in names:  # an unknown key or a wrong type: refused before anything runs
-        try:
-            apply_overrides(PRESETS[name], dict(args.set))
-        except ValueError as e:
-            parser.error(f"--set: {e}")
+        overrides_or_exit(parser, PRESETS[name], dict(args.set), "--set: ")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = device_for(args.device)

@@ -37,7 +37,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from dimslam.common.config import PRESETS
-from dimslam.common.options import apply_overrides, setting
+from dimslam.common.options import overrides_or_exit, setting
 
 DATASETS = (
     "../shared/data/room0",
@@ -190,13 +190,13 @@ def main() -> int:
             p.error(f"no dataset at {d}")
     if args.against is not None and not args.against.is_dir():
         p.error(f"--against: no folder at {args.against}")
-    try:
-        sets = dict(args.set)
-        apply_overrides(PRESETS[args.preset], sets)  # an unknown key or a wrong type: refused
-        if not args.report:
+    sets = dict(args.set)
+    overrides_or_exit(p, PRESETS[args.preset], sets)  # an unknown key or a wrong type: refused
+    if not args.report:
+        try:
             claim(args.out, args.preset, sets)
-    except ValueError as e:
-        p.error(str(e))
+        except ValueError as e:
+            p.error(str(e))
     # The slowest first (most frames), so the last runs to finish are short ones.
     jobs = sorted(
         ((d, k, s) for d in datasets for k in args.strides for s in args.seeds),

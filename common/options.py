@@ -107,6 +107,17 @@ def apply_overrides(cfg: T, overrides: dict[str, str]) -> T:
     return cfg
 
 
+def overrides_or_exit(
+    parser: argparse.ArgumentParser, cfg: T, overrides: dict[str, str], what: str = ""
+) -> T:
+    """`apply_overrides` for a command line: an unknown key or a wrong value ends the program
+    with `parser`'s usage error (exit status 2, `what` before the message), not a traceback."""
+    try:
+        return apply_overrides(cfg, overrides)
+    except ValueError as e:
+        parser.error(f"{what}{e}")
+
+
 def setting(text: str) -> tuple[str, str]:
     """One `KEY=VALUE` text, as a benchmark's `--set` takes it: `(key, value)` for
     `apply_overrides` (the argparse `type=` of such flags; `dict()` of their list is the

@@ -68,6 +68,22 @@ def test_a_variant_outside_the_tracking_side_is_refused(branch):
             branch.parse_variant(bad)
 
 
+def test_a_bad_variant_is_a_usage_error_before_anything_runs(branch, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out"
+    for bad, said in (
+        ("tracker.huber", "want KEY=VALUE"),
+        ("mapper.iters=5", "only keys in"),
+        ("tracker.iters=many", "cannot use"),
+    ):
+        argv = ["branch.py", str(tmp_path / "no_sequence"), "--at", "5", "--out", str(out)]
+        monkeypatch.setattr("sys.argv", [*argv, "--variant", "", "--variant", bad])
+        with pytest.raises(SystemExit) as e:
+            branch.main()
+        assert e.value.code == 2
+        assert said in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_the_truth_check_prints_each_frame_and_leaves_the_run_as_it_was(
     branch, tmp_path, monkeypatch, capfd
 ):
