@@ -132,8 +132,9 @@ class MapperConfig:
         "the map but no pose. A surface newly in view starts where the map's empty space "
         "renders, and with little parallax the poses would follow it there (room0's turns "
         "with render.normalize_depth); 0: every ray moves both. Off: with session 26's "
-        "division settings 0.7 takes room0 from 6.82 to 4.50 cm but room3 from 11.23 / 8.60 "
-        "to 14.97 / 14.27 (docs/results.md, 'New surfaces that the poses follow').",
+        "division settings 0.7 takes room0's mean over 3 seeds from 6.82 to 4.50 cm, but "
+        "room3's from 9.48 to 13.30 and room5's from 6.14 to 9.03 (docs/results.md, 'The "
+        "gate's whole table').",
     )
     stereo_weight: float = option(
         0.0,
