@@ -3,7 +3,7 @@
 import json
 
 import pytest
-from repo import benchmark
+from repo import benchmark, usage_error
 
 from dimslam.common.io.synth import write_sequence
 
@@ -40,11 +40,9 @@ def test_a_table_runs_with_its_settings_resumes_and_refuses_other_settings(
     assert "| scene | 1 |" in printed and "| 1.00x |" in printed, printed
 
     # The same folder with other settings would mix two tables.
-    monkeypatch.setattr("sys.argv", [*argv[:-4], "--set", "tracker.iters=8"])
-    with pytest.raises(SystemExit) as e:
-        table.main()
-    assert e.value.code == 2
-    assert "holds runs of other settings" in capsys.readouterr().err
+    other = [*argv[:-4], "--set", "tracker.iters=8"]
+    said = usage_error(monkeypatch, capsys, table.main, other)
+    assert "holds runs of other settings" in said
 
 
 def test_settings_are_checked_before_anything_runs(table, tmp_path, monkeypatch, capsys):
@@ -55,9 +53,5 @@ def test_settings_are_checked_before_anything_runs(table, tmp_path, monkeypatch,
         ("tracker.iters=many", "cannot use"),
     ):
         argv = ["table.py", "--out", str(out), "--datasets", str(tmp_path), "--set", bad]
-        monkeypatch.setattr("sys.argv", argv)
-        with pytest.raises(SystemExit) as e:
-            table.main()
-        assert e.value.code == 2
-        assert said in capsys.readouterr().err
+        assert said in usage_error(monkeypatch, capsys, table.main, argv)
     assert not out.exists()
