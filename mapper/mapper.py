@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -257,11 +257,12 @@ class Mapper:
             surface = (depth - self.cfg.gauge_depth).abs().expand(points.shape[:2])
             self.field.allocate(points.view(-1, 3), surface.reshape(-1))
         optimizer = self._adam(self._init_groups(10.0))
+        # A median depth moves only where the ray crosses half its light, so it cannot pull a
+        # fresh map's surface (all near) out to the gauge: the plane is fitted on the mean.
+        render_cfg = replace(self.render_cfg, median_depth=False)
         for _ in range(self.cfg.prior_iters):
             _, uv = random_pixels(1, 1024, self.camera, 0, self.generator, device)
-            out = render_pixels(
-                self.field, self.camera, uv, first.T_wc, self.render_cfg, self.generator
-            )
+            out = render_pixels(self.field, self.camera, uv, first.T_wc, render_cfg, self.generator)
             loss = (out.depth - self.cfg.gauge_depth).abs().mean()
             if self.render_cfg.normalize_depth and self.cfg.prior_stop:
                 # A normalized depth is met by rays that barely stop: the plane must stop them.

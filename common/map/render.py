@@ -57,11 +57,22 @@ class RenderConfig:
         "Normalized depth divides by at least this opacity: a ray through empty space keeps a "
         "bounded depth and gradient; at 1 the depth is not divided at all.",
     )
+    median_depth: bool = option(
+        False,
+        "Rendered depth is where the ray has stopped half of the light it stops (the median "
+        "of its weights, interpolated within the sample interval that crosses it) instead of "
+        "their mean: a surface whose light partly leaks behind it renders at the surface.",
+    )
     surface_band: float = option(
         0.15, "Surface samples cover the rendered depth +- this fraction of it."
     )
 
     def __post_init__(self) -> None:
+        if self.median_depth and self.normalize_depth:
+            raise ValueError(
+                "render.median_depth and render.normalize_depth exclude each other (the cpu "
+                "preset renders the median: add render.median_depth false to normalize)"
+            )
         if not 0 < self.normalize_floor <= 1:
             floor = self.normalize_floor
             raise ValueError(f"render.normalize_floor must be in (0, 1], got {floor}")
@@ -256,9 +267,29 @@ def render_rays(
     depth = (w * t).sum(dim=-1)
     rgb = (w[..., None] * out.rgb.view(R, S, 3)).sum(dim=1)
     opacity = w.sum(dim=-1)
+    if cfg.median_depth:
+        depth = median_depth(w, t)
     if cfg.normalize_depth:
         depth = depth / opacity.clamp_min(cfg.normalize_floor)
     return RenderOutput(depth=depth, rgb=rgb, opacity=opacity)
+
+
+def median_depth(w: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Depth `(R,)` where each ray's cumulative weight reaches half its sum, from weights and
+    sorted sample depths `(R, S)`. Sample i owns the interval from sample i - 1 up to itself
+    (`sample_pdf`): the crossing is placed within it by linear interpolation, so the depth is
+    differentiable in the weights up to and including the crossing sample and in the ray's
+    opacity."""
+    cum = torch.cumsum(w, dim=-1)
+    half = 0.5 * cum[:, -1:]
+    i = torch.searchsorted(cum.detach().contiguous(), half.detach().contiguous())
+    i = i.clamp_max(w.shape[1] - 1)
+    w_i = w.gather(1, i)
+    before = cum.gather(1, i) - w_i
+    t_i = t.gather(1, i)
+    t_prev = t.gather(1, (i - 1).clamp_min(0))
+    share = (half - before) / w_i.clamp_min(1e-8)
+    return (t_prev + (t_i - t_prev) * share)[:, 0]
 
 
 def render_pixels(

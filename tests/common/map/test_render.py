@@ -12,6 +12,7 @@ from dimslam.common.map.render import (
     DepthPrior,
     RenderConfig,
     camera_rays,
+    median_depth,
     ray_weights,
     render_image,
     render_pixels,
@@ -79,6 +80,39 @@ def test_normalized_depth_divides_by_the_opacity_down_to_its_floor():
         assert out.depth.item() == pytest.approx(expected, rel=1e-4)
     with pytest.raises(ValueError, match="normalize_floor"):
         RenderConfig(normalize_floor=0.0)
+
+
+def test_median_depth_is_where_half_the_stopped_light_has_stopped():
+    t = torch.linspace(0.5, 4.0, 36)[None].repeat(3, 1)  # samples 0.1 apart
+    occ = torch.zeros(3, 36)
+    occ[0, 15] = 0.9  # one sharp surface at 2.0 leaking a tenth of the light to one at 3.0
+    occ[0, 25] = 0.9
+    occ[1, 20:23] = 0.3  # a soft surface from 2.5 to 2.7
+    occ[2, 15] = 0.4  # a veil: the median of what it stops is the veil, whatever the opacity
+    occ.requires_grad_(True)
+    w = ray_weights(occ)
+    depth = median_depth(w, t)
+    # Sample i owns (t[i-1], t[i]]: the crossing's share of that interval places the depth.
+    assert depth[0].item() == pytest.approx(1.9 + 0.1 * 0.5 * w[0].sum().item() / 0.9, abs=1e-5)
+    mean = (w * t).sum(-1) / w.sum(-1)
+    assert mean[0].item() > 2.05  # the mean is pulled behind the surface by the leak
+    assert 2.4 < depth[1].item() < 2.6
+    assert depth[2].item() == pytest.approx(1.95, abs=1e-5)
+    depth.sum().backward()
+    assert torch.isfinite(occ.grad).all()
+    assert occ.grad[0, 15] < 0  # a denser surface renders nearer
+    # As a render option: the veil of the test above renders at its depth, not 0.6 of it.
+    cfg = RenderConfig(near=0.1, far=6.0, n_stratified=64, importance_rounds=0, median_depth=True)
+    wall = 0.1 + (6.0 - 0.1) * 20.5 / 64
+
+    def veil(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
+        occ = 0.6 * ((p[:, 2] - wall).abs() < 0.03).float()
+        return FieldOutput(occ, torch.zeros_like(p))
+
+    out = render_pixels(veil, CAM, torch.tensor([[19.5, 14.5]]), torch.eye(4), cfg)
+    assert wall - 0.1 < out.depth.item() <= wall
+    with pytest.raises(ValueError, match="exclude each other"):
+        RenderConfig(median_depth=True, normalize_depth=True)
 
 
 def test_importance_sampling_concentrates_on_the_surface():
