@@ -73,8 +73,7 @@ class RenderConfig:
     def __post_init__(self) -> None:
         if self.median_depth and self.normalize_depth:
             raise ValueError(
-                "render.median_depth and render.normalize_depth exclude each other (the cpu "
-                "preset renders the median: add render.median_depth false to normalize)"
+                "render.median_depth and render.normalize_depth exclude each other: set one false"
             )
         if not 0 < self.normalize_floor <= 1:
             floor = self.normalize_floor
@@ -267,11 +266,9 @@ def render_rays(
         observe(points[seen], surface[seen])
     out = field(points.reshape(-1, 3), with_color=with_color)
     w = ray_weights(out.occupancy.view(R, S))
-    depth = (w * t).sum(dim=-1)
+    depth = median_depth(w, t) if cfg.median_depth else (w * t).sum(dim=-1)
     rgb = (w[..., None] * out.rgb.view(R, S, 3)).sum(dim=1)
     opacity = w.sum(dim=-1)
-    if cfg.median_depth:
-        depth = median_depth(w, t)
     if cfg.normalize_depth:
         depth = depth / opacity.clamp_min(cfg.normalize_floor)
     return RenderOutput(depth=depth, rgb=rgb, opacity=opacity)
