@@ -74,12 +74,6 @@ class RenderConfig:
         "2.41 -> 2.44 cm (3 seeds) but 7-Scenes seed 0 4.95 -> 25.62 (docs/results.md, 'The "
         "median of all the light').",
     )
-    median_power: float = option(
-        0.0,
-        "With median_depth: the depth is the paper's sum moved towards the median by the "
-        "ray's opacity to this power (sum + opacity**p * (median - sum)): 0 is the median "
-        "itself; larger powers keep rays that stop little nearer the sum, with no jump.",
-    )
     surface_band: float = option(
         0.15, "Surface samples cover the rendered depth +- this fraction of it."
     )
@@ -87,12 +81,6 @@ class RenderConfig:
     def __post_init__(self) -> None:
         if self.median_of_all and not self.median_depth:
             raise ValueError("render.median_of_all applies to render.median_depth: set it true")
-        if self.median_power != 0 and (self.median_of_all or not self.median_depth):
-            raise ValueError(
-                "render.median_power applies to render.median_depth without median_of_all"
-            )
-        if self.median_power < 0:
-            raise ValueError(f"render.median_power must be >= 0, got {self.median_power}")
         if self.median_depth and self.normalize_depth:
             raise ValueError(
                 "render.median_depth and render.normalize_depth exclude each other: set one false"
@@ -294,9 +282,6 @@ def render_rays(
         depth = (w * t).sum(dim=-1)
     elif cfg.median_of_all:
         depth = torch.where(opacity >= 0.5, median_depth(w, t, 0.5), (w * t).sum(dim=-1))
-    elif cfg.median_power > 0:
-        mean = (w * t).sum(dim=-1)
-        depth = mean + opacity.clamp(0, 1) ** cfg.median_power * (median_depth(w, t) - mean)
     else:
         depth = median_depth(w, t)
     if cfg.normalize_depth:

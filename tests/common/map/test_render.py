@@ -128,13 +128,6 @@ def test_median_depth_is_where_half_the_stopped_light_has_stopped():
     assert depth[1].item() < all_light[1].item() < 2.6  # further into the soft surface
     with pytest.raises(ValueError, match="median_of_all"):
         RenderConfig(median_of_all=True)
-    # Moved from the sum towards the median by the opacity: no jump between the two veils.
-    blend = replace(cfg, median_power=1.0)
-    for field, stop in ((veil, 0.6), (faint, 0.4)):
-        out = render_pixels(field, CAM, torch.tensor([[19.5, 14.5]]), torch.eye(4), blend)
-        assert out.depth.item() == pytest.approx((stop + stop * (1 - stop)) * wall, rel=0.05)
-    with pytest.raises(ValueError, match="median_power"):
-        RenderConfig(median_depth=True, median_of_all=True, median_power=1.0)
 
 
 def test_importance_sampling_concentrates_on_the_surface():
