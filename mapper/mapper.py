@@ -259,7 +259,7 @@ class Mapper:
         optimizer = self._adam(self._init_groups(10.0))
         # A median depth moves only where the ray crosses half its light, so it cannot pull a
         # fresh map's surface (all near) out to the gauge: the plane is fitted on the mean.
-        render_cfg = replace(self.render_cfg, median_depth=False, median_of_all=False)
+        render_cfg = replace(self.render_cfg, median_depth=False)
         for _ in range(self.cfg.prior_iters):
             _, uv = random_pixels(1, 1024, self.camera, 0, self.generator, device)
             out = render_pixels(self.field, self.camera, uv, first.T_wc, render_cfg, self.generator)

@@ -66,21 +66,11 @@ class RenderConfig:
         "0.5) room3 18.59 -> 7.60 cm and room5 10.80 -> 6.45, but room0 3.29 -> 3.69 and "
         "7-Scenes 3.60 -> 4.55 (docs/results.md, 'The median depth').",
     )
-    median_of_all: bool = option(
-        False,
-        "With median_depth: the depth where the ray's transmittance falls to 0.5 (half of all "
-        "its light, not half of the light it stops); a ray that stops less than half its light "
-        "renders the paper's sum. Off: with tracker.window_refine_deg 0.6 / _seen 0.5, room0 "
-        "2.41 -> 2.44 cm (3 seeds) but 7-Scenes seed 0 4.95 -> 25.62 (docs/results.md, 'The "
-        "median of all the light').",
-    )
     surface_band: float = option(
         0.15, "Surface samples cover the rendered depth +- this fraction of it."
     )
 
     def __post_init__(self) -> None:
-        if self.median_of_all and not self.median_depth:
-            raise ValueError("render.median_of_all applies to render.median_depth: set it true")
         if self.median_depth and self.normalize_depth:
             raise ValueError(
                 "render.median_depth and render.normalize_depth exclude each other: set one false"
@@ -276,28 +266,22 @@ def render_rays(
         observe(points[seen], surface[seen])
     out = field(points.reshape(-1, 3), with_color=with_color)
     w = ray_weights(out.occupancy.view(R, S))
+    depth = median_depth(w, t) if cfg.median_depth else (w * t).sum(dim=-1)
     rgb = (w[..., None] * out.rgb.view(R, S, 3)).sum(dim=1)
     opacity = w.sum(dim=-1)
-    if not cfg.median_depth:
-        depth = (w * t).sum(dim=-1)
-    elif cfg.median_of_all:
-        depth = torch.where(opacity >= 0.5, median_depth(w, t, 0.5), (w * t).sum(dim=-1))
-    else:
-        depth = median_depth(w, t)
     if cfg.normalize_depth:
         depth = depth / opacity.clamp_min(cfg.normalize_floor)
     return RenderOutput(depth=depth, rgb=rgb, opacity=opacity)
 
 
-def median_depth(w: torch.Tensor, t: torch.Tensor, light: float | None = None) -> torch.Tensor:
-    """Depth `(R,)` where each ray's cumulative weight reaches half its sum (or `light`, a
-    share of all the ray's light, which a ray that stops less reaches at its last sample),
-    from weights and sorted sample depths `(R, S)`. Sample i owns the interval from sample
-    i - 1 up to itself (`sample_pdf`): the crossing is placed within it by linear
-    interpolation, so the depth is differentiable in the weights up to and including the
-    crossing sample and in the ray's opacity."""
+def median_depth(w: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Depth `(R,)` where each ray's cumulative weight reaches half its sum, from weights and
+    sorted sample depths `(R, S)`. Sample i owns the interval from sample i - 1 up to itself
+    (`sample_pdf`): the crossing is placed within it by linear interpolation, so the depth is
+    differentiable in the weights up to and including the crossing sample and in the ray's
+    opacity."""
     cum = torch.cumsum(w, dim=-1)
-    half = 0.5 * cum[:, -1:] if light is None else torch.full_like(cum[:, -1:], light)
+    half = 0.5 * cum[:, -1:]
     i = torch.searchsorted(cum.detach().contiguous(), half.detach().contiguous())
     i = i.clamp_max(w.shape[1] - 1)
     w_i = w.gather(1, i)

@@ -113,21 +113,6 @@ def test_median_depth_is_where_half_the_stopped_light_has_stopped():
     assert wall - 0.1 < out.depth.item() <= wall
     with pytest.raises(ValueError, match="exclude each other"):
         RenderConfig(median_depth=True, normalize_depth=True)
-    # Of all the light: the veil still renders at itself, a fainter one (0.4) the paper's sum.
-    of_all = replace(cfg, median_of_all=True)
-    out = render_pixels(veil, CAM, torch.tensor([[19.5, 14.5]]), torch.eye(4), of_all)
-    assert wall - 0.1 < out.depth.item() <= wall
-
-    def faint(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
-        return FieldOutput(veil(p).occupancy * 4 / 6, torch.zeros_like(p))
-
-    out = render_pixels(faint, CAM, torch.tensor([[19.5, 14.5]]), torch.eye(4), of_all)
-    assert out.depth.item() == pytest.approx(0.4 * wall, rel=0.05)
-    all_light = median_depth(w, t, 0.5)
-    assert all_light[0].item() == pytest.approx(1.9 + 0.1 * 0.5 / 0.9, abs=1e-5)
-    assert depth[1].item() < all_light[1].item() < 2.6  # further into the soft surface
-    with pytest.raises(ValueError, match="median_of_all"):
-        RenderConfig(median_of_all=True)
 
 
 def test_importance_sampling_concentrates_on_the_surface():
