@@ -20,6 +20,7 @@ from dimslam.common.map.field import MapConfig
 from dimslam.common.map.render import RenderConfig
 from dimslam.common.optim.objective import LossConfig
 from dimslam.common.options import apply_overrides, option, section, to_dict
+from dimslam.mapper.bundle import BundleConfig
 from dimslam.mapper.loop import LoopConfig
 from dimslam.mapper.mapper import MapperConfig
 from dimslam.tracker.tracker import TrackerConfig
@@ -37,6 +38,7 @@ class SlamConfig:
     tracker: TrackerConfig = section(TrackerConfig, "tracking")
     mapper: MapperConfig = section(MapperConfig, "mapping and initialization")
     loop: LoopConfig = section(LoopConfig, "loop closure")
+    bundle: BundleConfig = section(BundleConfig, "feature bundle adjustment of the keyframes")
     width: int = option(0, "Resize input frames to this width, intrinsics following (0: keep).")
     seed: int = option(0, "Random seed of pixel and ray sampling.")
 

@@ -37,6 +37,7 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
+from dimslam.mapper.bundle import FeatureTracks, adjust, grey_image, odometry_prior
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 from dimslam.tracker.frontend import MAX_VELOCITY_STEPS, carry_motion
@@ -84,6 +85,10 @@ class BackEnd:
             else None
         )
         self.closed: list[Loop] = []
+        bundle = cfg.bundle
+        self.tracks = (
+            FeatureTracks(camera.K, bundle.features, bundle.neighbours) if bundle.enabled else None
+        )
 
     @property
     def field(self):
@@ -129,6 +134,7 @@ class BackEnd:
         if every > 0 and self.rounds > 0 and self.rounds % every == 0:
             self.refine_global()
         self._close_loops(window)
+        self._describe(window)
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
@@ -252,9 +258,61 @@ class BackEnd:
                 f.T_wc = self.final_pose(f)
 
     def finish(self) -> None:
-        """End of the sequence: the optional post-optimization over all keyframes."""
+        """End of the sequence: the feature bundle adjustment (`bundle.enabled`) and the
+        optional post-optimization over all keyframes."""
+        if self.initialized and self.tracks is not None:
+            self.adjust_keyframes()
         if self.initialized and self.cfg.mapper.post_iters > 0:
             self.mapper.post_optimize(self.keyframes)
+
+    def _describe(self, window: list[FrameState]) -> None:
+        """Add the window's new keyframes to the feature tracks (`bundle.enabled`)."""
+        if self.tracks is None:
+            return
+        newest = max(self.tracks.keyframes, default=-1)
+        for f in window:
+            if f.keyframe and f.rgb is not None and f.index > newest:
+                self.tracks.add(f.index, grey_image(f.rgb))
+
+    def adjust_keyframes(self) -> None:
+        """Refine every described keyframe's pose by the feature bundle adjustment
+        (`mapper/bundle.py`); the frames anchored to a keyframe follow it, their offsets
+        scaled as its step to the next keyframe was, and the map is refitted to the new
+        poses where they moved most."""
+        assert self.tracks is not None
+        cfg = self.cfg.bundle
+        keyframes = [kf for kf in self.keyframes if kf.index in self.tracks]
+        if len(keyframes) < 3:
+            return
+        started = time.perf_counter()
+        obs = self.tracks.observations([kf.index for kf in keyframes], cfg.views)
+        T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])
+        K = torch.from_numpy(self.camera.K)
+        prior = odometry_prior(T_wc, cfg.turn_deg, cfg.direction)
+        result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
+        # Each keyframe's offsets to the frames after it scale as its step to the next did.
+        before = (T_wc[1:, :3, 3] - T_wc[:-1, :3, 3]).norm(dim=1)
+        after = (result.T_wc[1:, :3, 3] - result.T_wc[:-1, :3, 3]).norm(dim=1)
+        ratio = torch.where(before > 1e-9, after / before.clamp_min(1e-9), torch.ones_like(after))
+        scales = torch.cat([ratio, ratio[-1:]])
+        moved = self._move(keyframes, sim3.from_pose(result.T_wc, scales))
+        log.info(
+            "feature bundle adjustment of %d keyframes: %d points, %d observations, cost "
+            "%.1f; keyframes moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
+            len(keyframes),
+            result.points,
+            result.observations,
+            result.cost,
+            float(np.median(moved)),
+            max(moved),
+            float(scales.min()),
+            float(scales.max()),
+            time.perf_counter() - started,
+        )
+        if cfg.refit_iters > 0:
+            order = sorted(range(len(keyframes)), key=lambda k: -moved[k])
+            anchors = [keyframes[k] for k in order[: max(1, cfg.refit_iters // 20)]]
+            self.mapper.post_optimize(keyframes, cfg.refit_iters, anchors=anchors)
 
     def reanchor(self) -> None:
         """Anchor every non-keyframe held to the keyframe before it (a resumed map)."""

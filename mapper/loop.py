@@ -45,14 +45,13 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.map.render import RenderConfig, render_pixels
 from dimslam.common.optim.window import FrameState, TrackingLost
 from dimslam.common.options import option
+from dimslam.mapper.bundle import RATIO, grey_image
 from dimslam.mapper.posegraph import Edge, PoseGraphResult, odometry_edges, solve_pose_graph
 from dimslam.tracker.direct import DirectTracker
 from dimslam.tracker.tracker import TrackerConfig
 
 log = logging.getLogger(__name__)
 
-RATIO = 0.8
-"""Lowe's ratio test: a match is kept when its distance is under this share of the second's."""
 MIN_OPACITY = 0.5
 """Map depth is trusted where the rendered ray's opacity is at least this."""
 MAX_TURN = math.radians(30.0)
@@ -169,9 +168,7 @@ class Loop:
 
 def describe(index: int, rgb: torch.Tensor, features: int) -> KeyframeCode:
     """ORB features of a keyframe's `(H, W, 3)` image in [0, 1] (depth unknown)."""
-    grey = cv2.cvtColor(
-        (rgb.detach().cpu().numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY
-    )
+    grey = grey_image(rgb)
     patch = int(np.clip(grey.shape[1] // 10, 11, 31))
     orb = cv2.ORB_create(
         nfeatures=features, nlevels=4, edgeThreshold=patch, patchSize=patch, fastThreshold=10

@@ -7,8 +7,10 @@ from walls import CAM, textured_wall_image, wall
 
 from dimslam.common.config import PRESETS
 from dimslam.common.geometry import pose, sim3
+from dimslam.common.io.datasets import open_dataset
+from dimslam.common.io.synth import write_sequence
 from dimslam.common.map.mesh import EmptyMeshError
-from dimslam.common.optim.window import FrameState
+from dimslam.common.optim.window import FrameState, image_tensor
 from dimslam.common.options import apply_overrides
 from dimslam.mapper.backend import BackEnd
 from dimslam.tracker.tracker import Tracker
@@ -138,3 +140,38 @@ def test_a_keyframe_takes_the_refined_end_from_the_motion_where_the_two_ends_dif
     kept = [f.T_wc.clone() for f in frames]
     back._refine_keyframes(frames[3:])
     assert all(torch.equal(f.T_wc, T) for f, T in zip(frames, kept, strict=True))
+
+
+def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follow(tmp_path):
+    """The built-in scene's first 16 frames, keyframes every 3rd, tracked at the true poses
+    until keyframe 6 and with every step 30 % too short after it (a scale drift): the
+    adjustment brings the keyframes' steps back to their true lengths, and the frames
+    anchored to them follow."""
+    write_sequence(tmp_path / "seq", frames=16, width=320, height=240, noise=0.0)
+    reader = open_dataset(tmp_path / "seq")
+    cfg = apply_overrides(PRESETS["cpu"], {"bundle.enabled": "true", "bundle.refit_iters": "0"})
+    back = BackEnd(cfg, reader.camera, torch.device("cpu"), torch.Generator())
+    truth = torch.stack([torch.from_numpy(f.T_wc) for f in reader]).float()
+    drifted = truth.clone()
+    drifted[7:, :3, 3] = truth[6, :3, 3] + 0.7 * (truth[7:, :3, 3] - truth[6, :3, 3])
+    frames = [
+        FrameState(
+            f.index, f.timestamp, image_tensor(f.rgb, "cpu"), drifted[f.index], f.index % 3 == 0
+        )
+        for f in reader
+    ]
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    back._describe(frames)
+    back.adjust_keyframes()
+
+    def steps(T):
+        return (T[3::3, :3, 3] - T[:-3:3, :3, 3]).norm(dim=1)
+
+    final = torch.from_numpy(back.trajectory().poses).float()
+    ratio = steps(final) / steps(truth)
+    assert ratio.max() / ratio.min() < 1.05  # one scale along the whole path (was 0.7 to 1)
+    between = (final[7:, :3, 3] - final[6:-1, :3, 3]).norm(dim=1)
+    true_between = (truth[7:, :3, 3] - truth[6:-1, :3, 3]).norm(dim=1)
+    assert (between / true_between).std() < 0.05 * (between / true_between).mean()

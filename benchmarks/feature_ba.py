@@ -1,0 +1,174 @@
+"""Whether sparse features see a run's drift: ORB bundle adjustment over its keyframes.
+
+    python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR] [--starts run,truth,blind]
+        [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
+
+RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
+ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
+ORB refined to sub-pixel, matched with the `--neighbours` keyframes before, an essential
+matrix by RANSAC). For the *run* and *truth* starts, matches the ground truth calls wrong
+(reprojection above `--outlier` pixels of their level after triangulation at the true poses)
+are dropped, so what remains is what correct feature matches say about the poses; the
+adjustment then starts from the run's keyframe poses or from the true ones (brought to the
+run's frame by Sim(3)), with the first two keyframes held (they fix the gauge and the scale):
+
+- *points-only cost*: the points refined with every pose held, the Huber reprojection cost
+  (squared pixels of the features' levels): a drifted path that costs no more than the true
+  one is one the features cannot tell from it;
+- *adjusted*: poses and points refined together, the cost and the keyframe ATE (Sim(3), cm)
+  where it ends.
+
+The *blind* start is what the mapper does (`--bundle.enabled true`): from the run, with the
+outliers judged at its own poses (`mapper.bundle.adjust`).
+
+`--odometry DEG DIR` adds the run's own steps between consecutive keyframes as a prior,
+without their lengths (each turn within DEG degrees, each direction within DIR): the
+photometric tracker's local motion, which is accurate, with the scale left to the features.
+
+`--noise PX` replaces every observation by the projection of its point at the true poses
+plus Gaussian noise: the features as an ideal detector would give them, which separates
+what the data says from how well the problem is conditioned.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from dimslam.common.eval.evaluation import umeyama
+from dimslam.common.geometry import pose
+from dimslam.common.io.datasets import ReaderOptions, open_dataset
+from dimslam.common.io.trajectory import read_tum
+from dimslam.mapper.bundle import (
+    BundleConfig,
+    FeatureTracks,
+    adjust,
+    bundle_adjust,
+    odometry_prior,
+    reprojection,
+    triangulate,
+)
+
+
+def keyframe_ate(T_wc: np.ndarray, truth: np.ndarray) -> float:
+    """Keyframe ATE (cm) after Sim(3)."""
+    S = umeyama(T_wc[:, :3, 3], truth[:, :3, 3])
+    e = S.apply_points(T_wc[:, :3, 3]) - truth[:, :3, 3]
+    return float(np.sqrt((e**2).sum(1).mean()) * 100)
+
+
+def main() -> None:
+    defaults = BundleConfig()
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run", type=Path, help="a run's output folder (keyframes.txt)")
+    p.add_argument("dataset", help="the sequence it ran on, with ground truth")
+    p.add_argument(
+        "--neighbours",
+        type=int,
+        default=defaults.neighbours,
+        help="keyframes before each that it is matched with",
+    )
+    p.add_argument("--iters", type=int, default=defaults.iters, help="adjustment iterations")
+    p.add_argument(
+        "--outlier",
+        type=float,
+        default=defaults.outlier,
+        help="reprojection error (pixels of the level) of an outlier",
+    )
+    p.add_argument(
+        "--noise", type=float, default=None, help="px: ideal observations with this noise"
+    )
+    p.add_argument(
+        "--odometry",
+        type=float,
+        nargs=2,
+        metavar=("DEG", "DIR"),
+        help="also hold the run's steps between keyframes: turns within DEG degrees, "
+        f"directions within DIR (bundle.turn_deg {defaults.turn_deg}, bundle.direction "
+        f"{defaults.direction} in the mapper)",
+    )
+    p.add_argument(
+        "--starts",
+        default="run,truth",
+        help="comma-separated: run, truth, blind (what the mapper does: from the run, "
+        "outliers judged at its own poses)",
+    )
+    p.add_argument(
+        "--views",
+        type=int,
+        default=defaults.views,
+        help="the least keyframes a track is used from",
+    )
+    p.add_argument("--width", type=int, default=320, help="image width (the cpu preset's)")
+    args = p.parse_args()
+    if args.neighbours < 1 or args.iters < 0:
+        p.error("--neighbours must be >= 1 and --iters >= 0")
+    if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
+        p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
+    keyframes = read_tum(args.run / "keyframes.txt")
+    reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
+    cam = reader.camera
+    K = torch.tensor([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]], dtype=torch.float64)
+    wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}
+    images, truth = {}, {}
+    for frame in reader:
+        k = wanted.get(round(frame.timestamp, 4))
+        if k is not None:
+            images[k] = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+            truth[k] = frame.T_wc
+    if len(images) != len(wanted) or any(t is None for t in truth.values()):
+        p.error(f"{args.dataset}: {len(images)} of {len(wanted)} keyframes found with ground truth")
+    n = len(images)
+    tracks = FeatureTracks(K.numpy(), defaults.features, args.neighbours)
+    for k in range(n):
+        tracks.add(k, images[k])
+    unjudged = tracks.observations(list(range(n)), args.views)
+    gt = np.stack([truth[k] for k in range(n)])
+    run = torch.from_numpy(keyframes.poses)
+    starts = {
+        "run": run,
+        "truth": torch.from_numpy(umeyama(gt[:, :3, 3], run[:, :3, 3].numpy()).apply_poses(gt)),
+    }
+    # Matches the truth calls wrong are dropped; both starts then see the same observations:
+    # those in front of their cameras from both.
+    T_true = pose.invert(starts["truth"])
+    r, c = reprojection(T_true, triangulate(T_true, K, unjudged), K, unjudged)
+    obs = unjudged.select((r.norm(dim=1) < args.outlier) & (c[:, 2] > 0))
+    for T_wc in starts.values():
+        T_cw = pose.invert(T_wc)
+        _, c = reprojection(T_cw, triangulate(T_cw, K, obs), K, obs)
+        obs = obs.select(c[:, 2] > 0)
+    if args.noise is not None:
+        r, _ = reprojection(T_true, triangulate(T_true, K, obs), K, obs)
+        noise = torch.randn(
+            obs.uv.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64
+        )
+        obs.uv = obs.uv + r * obs.sigma[:, None] + args.noise * noise
+    seen_by = torch.bincount(torch.bincount(obs.p), minlength=5)
+    two, three, more = int(seen_by[2]), int(seen_by[3]), int(seen_by[4:].sum())
+    print(
+        f"{n} keyframes, {obs.points} points, {len(obs.k)} observations; points seen by "
+        f"2 / 3 / 4+ keyframes: {two} / {three} / {more}"
+    )
+    print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
+    prior = None if args.odometry is None else odometry_prior(run, *args.odometry)
+    for name in args.starts.split(","):
+        T_wc = starts["run" if name == "blind" else name]
+        T_cw = pose.invert(T_wc)
+        if name == "blind":
+            result = adjust(T_wc, K, unjudged, args.outlier, args.iters, prior)
+            T_ba, cost, held = result.T_wc, result.cost, "-"
+        else:
+            _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
+            T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, 2, args.iters, prior=prior)
+            T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
+        before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
+        print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
+
+
+if __name__ == "__main__":
+    main()

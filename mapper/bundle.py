@@ -1,0 +1,447 @@
+"""Feature bundle adjustment of the keyframes: the scale the photometric map lets drift.
+
+The photometric tracker and mapper follow each 30-frame stretch of a path to 0.2-2 cm, but
+the map's scale drifts between stretches (a turn towards far walls that start too near,
+docs/results.md "Where the scale goes"), and what they optimize cannot see it. Sparse
+features can: a point seen from keyframes far apart ties their distances together. Here:
+
+1. every keyframe gets ORB features (refined to sub-pixel: a FAST corner sits on a whole
+   pixel of its pyramid level), matched with the `neighbours` keyframes before it (ratio
+   test, then an essential matrix by RANSAC); the matches chain into tracks;
+2. `adjust` refines all keyframe poses and the tracks' points together: the Huber
+   reprojection error of every observation (in pixels of its pyramid level), plus an
+   odometry prior that holds each step between consecutive keyframes to its turn and its
+   direction as tracked, but not its length. The first two keyframes are held: they fix the
+   map's gauge and scale. Outliers are judged at the poses themselves, loosely first and
+   tightly after a first adjustment.
+
+Levenberg-Marquardt with the points eliminated (Schur complement); poses are world to
+camera and updated on the left. `benchmarks/feature_ba.py` measures what it does to a run's
+keyframes against the ground truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from dimslam.common.geometry import pose
+from dimslam.common.options import option
+
+log = logging.getLogger(__name__)
+
+RATIO = 0.8
+"""Lowe's ratio test: a match is kept when its distance is under this share of the second's."""
+SCALE = 1.2
+"""ORB's pyramid scale factor: a feature's pixel error grows with its level."""
+
+
+@dataclass(frozen=True)
+class BundleConfig:
+    """Feature bundle adjustment of the keyframes (mapper process)."""
+
+    enabled: bool = option(
+        False,
+        "At the end of a run, refine every keyframe pose by its ORB features' reprojection "
+        "error with the tracked steps' turns and directions as a prior (not their lengths), "
+        "and move the other frames and the map with them.",
+    )
+    features: int = option(1500, "ORB features per keyframe.")
+    neighbours: int = option(8, "Keyframes before each new one that it is matched with.")
+    views: int = option(
+        3,
+        "The least keyframes a track is used from: a track seen twice fits any two poses "
+        "that its epipolar line allows, so a wrong match cannot be told by its reprojection "
+        "(with 2, room0 seed 1's keyframes went from 2.89 to 6.09 cm, with 3 to 2.50; "
+        "docs/results.md).",
+    )
+    outlier: float = option(
+        3.0, "Reprojection error (pixels of the feature's pyramid level) of an outlier."
+    )
+    turn_deg: float = option(
+        0.2, "The odometry prior's standard error on each step's turn (degrees)."
+    )
+    direction: float = option(
+        0.02,
+        "The odometry prior's standard error on each step's direction (a unit vector), for "
+        "a step of the median length; shorter steps' directions are held less, in proportion.",
+    )
+    iters: int = option(60, "Levenberg-Marquardt iterations (two passes of half).")
+    refit_iters: int = option(
+        60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
+    )
+
+    def __post_init__(self) -> None:
+        if self.features < 8 or self.neighbours < 1 or self.iters < 0 or self.refit_iters < 0:
+            raise ValueError(
+                "bundle: features >= 8, neighbours >= 1, iters >= 0 and refit_iters >= 0 needed"
+            )
+        if self.views < 2:
+            raise ValueError(f"bundle.views must be at least 2, got {self.views}")
+        if min(self.outlier, self.turn_deg, self.direction) <= 0:
+            raise ValueError("bundle: outlier, turn_deg and direction must be positive")
+
+
+@dataclass
+class Observations:
+    """Feature observations: pose `k[i]` sees point `p[i]` at pixel `uv[i]`."""
+
+    k: torch.Tensor
+    p: torch.Tensor
+    uv: torch.Tensor
+    sigma: torch.Tensor
+    """`(n,)` the pixel's standard error: the scale of the pyramid level it was found on."""
+
+    @property
+    def points(self) -> int:
+        return int(self.p.max()) + 1 if len(self.p) else 0
+
+    def select(self, keep: torch.Tensor) -> Observations:
+        """The observations `keep` of the points all of whose observations are kept, with
+        the points numbered again from 0."""
+        bad = torch.zeros(self.points, dtype=torch.bool)
+        bad[self.p[~keep]] = True
+        ok = ~bad[self.p]
+        _, p = torch.unique(self.p[ok], return_inverse=True)
+        return Observations(self.k[ok], p, self.uv[ok], self.sigma[ok])
+
+
+def grey_image(rgb: torch.Tensor | np.ndarray) -> np.ndarray:
+    """8-bit grey of an `(H, W, 3)` RGB image, float in [0, 1] (tensor) or uint8."""
+    if isinstance(rgb, torch.Tensor):
+        rgb = (rgb.detach().cpu().numpy() * 255).round().astype(np.uint8)
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+@dataclass
+class Features:
+    """A keyframe's ORB features."""
+
+    points: np.ndarray
+    """`(n, 2)` float64 sub-pixel positions."""
+    sigma: np.ndarray
+    """`(n,)` float64 pixel standard errors (`SCALE` to the pyramid level)."""
+    descriptors: np.ndarray | None
+
+
+def describe(grey: np.ndarray, features: int) -> Features:
+    """ORB features of an 8-bit grey image, refined to sub-pixel."""
+    orb = cv2.ORB_create(features, nlevels=4, edgeThreshold=19, patchSize=19, fastThreshold=10)
+    keypoints, descriptors = orb.detectAndCompute(grey, None)
+    points = np.array([k.pt for k in keypoints], np.float64).reshape(-1, 2)
+    if len(points):
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
+        refined = cv2.cornerSubPix(
+            grey, points.astype(np.float32).reshape(-1, 1, 2), (2, 2), (-1, -1), criteria
+        ).reshape(-1, 2)
+        near = np.linalg.norm(refined - points, axis=1) < 1.0  # a corner it did not lose
+        points[near] = refined[near]
+    sigma = SCALE ** np.array([k.octave for k in keypoints], np.float64)
+    return Features(points, sigma, descriptors)
+
+
+class FeatureTracks:
+    """Keyframes' features, added in path order, and the tracks their matches make."""
+
+    def __init__(self, K: np.ndarray, features: int, neighbours: int) -> None:
+        self.K = K
+        self.features = features
+        self.neighbours = neighbours
+        self.keyframes: dict[int, Features] = {}  # frame index -> features, in path order
+        self.offset: dict[int, int] = {}  # frame index -> its first feature's id
+        self.parent = np.zeros(0, dtype=np.int64)  # union-find over feature ids
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def __contains__(self, index: int) -> bool:
+        return index in self.keyframes
+
+    def _root(self, a: int) -> int:
+        parent = self.parent
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = int(parent[a])
+        return a
+
+    def add(self, index: int, grey: np.ndarray) -> None:
+        """Describe keyframe `index` (newer than every one added) and link its features to
+        the matching ones of the `neighbours` keyframes before it."""
+        new = describe(grey, self.features)
+        before = list(self.keyframes)[-self.neighbours :]
+        start = len(self.parent)
+        self.offset[index] = start
+        self.parent = np.concatenate([self.parent, np.arange(start, start + len(new.points))])
+        self.keyframes[index] = new
+        for j in before:
+            old = self.keyframes[j]
+            if new.descriptors is None or old.descriptors is None or len(old.descriptors) < 2:
+                continue
+            pairs = self.matcher.knnMatch(new.descriptors, old.descriptors, k=2)
+            good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < RATIO * p[1].distance]
+            if len(good) < 8:
+                continue
+            a = np.array([m.queryIdx for m in good])
+            b = np.array([m.trainIdx for m in good])
+            _, mask = cv2.findEssentialMat(
+                new.points[a], old.points[b], self.K, cv2.RANSAC, 0.999, 1.0
+            )
+            if mask is None:
+                continue
+            inlier = mask.ravel() > 0
+            for x, y in zip(a[inlier], b[inlier], strict=True):
+                self.parent[self._root(start + x)] = self._root(self.offset[j] + y)
+
+    def observations(self, indices: list[int], views: int = 2) -> Observations:
+        """The tracks seen by at least `views` of keyframes `indices` (all added; pose `k` is
+        `indices[k]`), without the tracks that see one keyframe twice (a wrong link)."""
+        kf, ids, uv, sigma = [], [], [], []
+        for k, index in enumerate(indices):
+            f = self.keyframes[index]
+            kf.append(np.full(len(f.points), k))
+            ids.append(self.offset[index] + np.arange(len(f.points)))
+            uv.append(f.points)
+            sigma.append(f.sigma)
+        kf, ids = np.concatenate(kf), np.concatenate(ids)
+        roots = np.array([self._root(int(a)) for a in ids], dtype=np.int64)
+        _, track, size = np.unique(roots, return_inverse=True, return_counts=True)
+        twice = np.zeros(len(size), bool)
+        values, counts = np.unique(track * len(indices) + kf, return_counts=True)
+        twice[values[counts > 1] // len(indices)] = True
+        keep = (size[track] >= views) & ~twice[track]
+        _, p = np.unique(track[keep], return_inverse=True)
+        return Observations(
+            torch.from_numpy(kf[keep]),
+            torch.from_numpy(p),
+            torch.from_numpy(np.concatenate(uv)[keep]),
+            torch.from_numpy(np.concatenate(sigma)[keep]),
+        )
+
+
+def triangulate(T_cw: torch.Tensor, K: torch.Tensor, obs: Observations) -> torch.Tensor:
+    """Each point by linear triangulation (DLT) from all its observations: `(points, 3)`."""
+    P = K @ T_cw[:, :3, :]
+    rows = torch.cat(
+        [obs.uv[:, :1] * P[obs.k, 2] - P[obs.k, 0], obs.uv[:, 1:] * P[obs.k, 2] - P[obs.k, 1]]
+    )
+    A = torch.zeros(obs.points, 4, 4, dtype=T_cw.dtype)
+    A.index_add_(0, obs.p.repeat(2), rows[:, :, None] * rows[:, None, :])
+    _, vectors = torch.linalg.eigh(A)
+    X = vectors[:, :, 0]
+    return X[:, :3] / X[:, 3:]
+
+
+def reprojection(
+    T_cw: torch.Tensor, X: torch.Tensor, K: torch.Tensor, obs: Observations
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals `(n, 2)` in pixels of each observation's level, and the camera-frame points
+    `(n, 3)`."""
+    c = (T_cw[obs.k, :3, :3] @ X[obs.p, :, None])[:, :, 0] + T_cw[obs.k, :3, 3]
+    uv = c[:, :2] / c[:, 2:] * K.diagonal()[:2] + K[:2, 2]
+    return (uv - obs.uv) / obs.sigma[:, None], c
+
+
+def _huber(r: torch.Tensor, c: torch.Tensor, delta: float) -> float:
+    if bool((c[:, 2] <= 1e-6).any()):
+        return math.inf  # a step that puts a point behind a camera is not taken
+    n = r.norm(dim=1)
+    return float(torch.where(n <= delta, n**2, 2 * delta * n - delta**2).sum())
+
+
+def _schur_pairs(obs: Observations, free: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every ordered pair of observations of one point, both on free poses."""
+    index = torch.nonzero(free)[:, 0]
+    index = index[torch.argsort(obs.p[index], stable=True)]
+    bounds = torch.searchsorted(obs.p[index], torch.arange(obs.points + 1)).tolist()
+    first, second = [torch.zeros(0, dtype=torch.long)], [torch.zeros(0, dtype=torch.long)]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        if b > a:
+            first.append(index[a:b].repeat_interleave(b - a))
+            second.append(index[a:b].repeat(b - a))
+    return torch.cat(first), torch.cat(second)
+
+
+def bundle_adjust(
+    T_cw: torch.Tensor,
+    X: torch.Tensor,
+    K: torch.Tensor,
+    obs: Observations,
+    fixed: int,
+    iters: int,
+    delta: float = 1.5,
+    prior: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Huber reprojection cost over every pose after the first `fixed` and every point.
+    `prior(T_cw)`, if given, adds whitened residuals on the poses alone. Returns the poses,
+    the points and the final cost."""
+    m = len(T_cw) - fixed
+    free = obs.k >= fixed
+    col = obs.k - fixed
+    ii, jj = _schur_pairs(obs, free)
+    use_prior = prior is not None and m > 0
+
+    def cost_of(T, X):
+        r, c = reprojection(T, X, K, obs)
+        extra = float((prior(T) ** 2).sum()) if use_prior else 0.0
+        return r, c, _huber(r, c, delta) + extra
+
+    r, c, cost = cost_of(T_cw, X)
+    lam = 1e-3
+    for _ in range(iters):
+        if use_prior:
+
+            def moved(step, base=T_cw):
+                T = base.clone()
+                T[fixed:] = pose.exp_se3(step.reshape(m, 6)) @ base[fixed:]
+                return prior(T)
+
+            zero = torch.zeros(6 * m, dtype=X.dtype)
+            J_prior = torch.autograd.functional.jacobian(moved, zero, vectorize=True)
+            r_prior = moved(zero)
+        norm = r.norm(dim=1)
+        w = torch.where(norm <= delta, torch.ones_like(norm), delta / norm.clamp_min(1e-12))
+        x, y, z = c.unbind(1)
+        zero = torch.zeros_like(z)
+        fx, fy = float(K[0, 0]), float(K[1, 1])
+        dproj = (
+            torch.stack(
+                [
+                    torch.stack([fx / z, zero, -fx * x / z**2], 1),
+                    torch.stack([zero, fy / z, -fy * y / z**2], 1),
+                ],
+                1,
+            )
+            / obs.sigma[:, None, None]
+        )
+        J_pose = torch.cat([dproj, -dproj @ pose.hat(c)], 2)  # (n, 2, 6): left (v, w)
+        J_point = dproj @ T_cw[obs.k, :3, :3]  # (n, 2, 3)
+        wJ_point = w[:, None, None] * J_point
+        H_pp = torch.zeros(obs.points, 3, 3, dtype=X.dtype).index_add_(
+            0, obs.p, J_point.transpose(1, 2) @ wJ_point
+        )
+        g_p = torch.zeros(obs.points, 3, dtype=X.dtype).index_add_(
+            0, obs.p, -(wJ_point.transpose(1, 2) @ r[:, :, None])[:, :, 0]
+        )
+        H_cp = J_pose.transpose(1, 2) @ wJ_point  # (n, 6, 3)
+        H_cc = torch.zeros(m, m, 6, 6, dtype=X.dtype)
+        H_cc.index_put_(
+            (col[free], col[free]),
+            (J_pose.transpose(1, 2) @ (w[:, None, None] * J_pose))[free],
+            accumulate=True,
+        )
+        g_c = torch.zeros(m, 6, dtype=X.dtype).index_add_(
+            0, col[free], -((w[:, None, None] * J_pose).transpose(1, 2) @ r[:, :, None])[free, :, 0]
+        )
+        diagonal = H_cc.diagonal(0, 2, 3).diagonal(0, 0, 1).T.reshape(-1)
+        if use_prior:
+            diagonal = diagonal + (J_prior**2).sum(0)
+        while True:
+            H_pp_inv = torch.linalg.inv(
+                H_pp + lam * H_pp.diagonal(0, 1, 2).diag_embed() + 1e-9 * torch.eye(3)
+            )
+            S = H_cc.clone()
+            S.index_put_(
+                (col[ii], col[jj]),
+                -(H_cp[ii] @ H_pp_inv[obs.p[ii]] @ H_cp[jj].transpose(1, 2)),
+                accumulate=True,
+            )
+            g = g_c.index_add(
+                0,
+                col[free],
+                -(H_cp[free] @ (H_pp_inv[obs.p[free]] @ g_p[obs.p[free], :, None]))[:, :, 0],
+            ).reshape(-1)
+            S = S.transpose(1, 2).reshape(6 * m, 6 * m)
+            if use_prior:
+                S = S + J_prior.T @ J_prior
+                g = g - J_prior.T @ r_prior
+            # Marquardt's damping on the whole diagonal (a pose no feature sees has only the
+            # prior's), with a floor for a pose nothing holds.
+            S = S + torch.diag(lam * diagonal + 1e-9 * (1 + lam))
+            step_c = torch.linalg.solve(S, g).reshape(m, 6) if m else g.reshape(0, 6)
+            per_obs = torch.zeros(len(obs.k), 6, dtype=X.dtype)
+            per_obs[free] = step_c[col[free]]
+            rhs = g_p.index_add(0, obs.p, -(H_cp.transpose(1, 2) @ per_obs[:, :, None])[:, :, 0])
+            T_new = T_cw.clone()
+            T_new[fixed:] = pose.exp_se3(step_c) @ T_cw[fixed:]
+            X_new = X + (H_pp_inv @ rhs[:, :, None])[:, :, 0]
+            r_new, c_new, new = cost_of(T_new, X_new)
+            if new < cost:
+                T_cw, X, r, c, cost = T_new, X_new, r_new, c_new, new
+                lam = max(lam / 3, 1e-7)
+                break
+            lam *= 5
+            if lam > 1e8:
+                return T_cw, X, cost
+    return T_cw, X, cost
+
+
+def odometry_prior(
+    T_wc: torch.Tensor, turn_deg: float, direction: float
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """Whitened residuals (of world-to-camera poses) that keep each step between
+    consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
+    direction (unit vectors within `direction` for a step of the median length, in
+    proportion to the length for the others: a short step's direction says little), its
+    length free: a tracker's local motion without its scale."""
+    rel = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
+    length = rel[:, :3, 3].norm(dim=1, keepdim=True)
+    heading = rel[:, :3, 3] / length.clamp_min(1e-12)
+    weight = length / length.median().clamp_min(1e-12) / direction
+
+    def residuals(T_cw: torch.Tensor) -> torch.Tensor:
+        step = pose.compose(T_cw[:-1], pose.invert(T_cw[1:]))
+        turn = pose.log_so3(rel[:, :3, :3].transpose(1, 2) @ step[:, :3, :3])
+        t = step[:, :3, 3] / step[:, :3, 3].norm(dim=1, keepdim=True).clamp_min(1e-12)
+        return torch.cat(
+            [(turn / math.radians(turn_deg)).ravel(), ((t - heading) * weight).ravel()]
+        )
+
+    return residuals
+
+
+def judged(T_cw: torch.Tensor, K: torch.Tensor, obs: Observations, limit: float) -> Observations:
+    """The observations of the points whose every observation reprojects within `limit`
+    (pixels of its level) in front of its camera, triangulated at `T_cw`."""
+    X = triangulate(T_cw, K, obs)
+    r, c = reprojection(T_cw, X, K, obs)
+    # Points at infinity (the rays parallel) place nothing.
+    far = (X.norm(dim=1) > 1e3 * X.norm(dim=1).median())[obs.p]
+    return obs.select((r.norm(dim=1) < limit) & (c[:, 2] > 1e-3) & ~far)
+
+
+@dataclass(frozen=True)
+class Adjusted:
+    """What `adjust` did."""
+
+    T_wc: torch.Tensor
+    """`(n, 4, 4)` float64 the adjusted poses, camera to world."""
+    points: int
+    observations: int
+    cost: float
+    """The final cost (px^2 of the observations' levels, Huber, plus the prior's)."""
+
+
+def adjust(
+    T_wc: torch.Tensor,
+    K: torch.Tensor,
+    obs: Observations,
+    outlier: float,
+    iters: int,
+    prior: Callable[[torch.Tensor], torch.Tensor] | None,
+) -> Adjusted:
+    """Poses `T_wc` (float64, path order, the first two held) adjusted on `obs`: outliers
+    judged at the poses themselves, loosely first (3 `outlier`) and at `outlier` after
+    a first pass of half the iterations."""
+    T_cw = pose.invert(T_wc)
+    loose = judged(T_cw, K, obs, 3 * outlier)
+    X = triangulate(T_cw, K, loose)
+    _, X, _ = bundle_adjust(T_cw, X, K, loose, len(T_cw), 20)
+    T_first, _, _ = bundle_adjust(T_cw, X, K, loose, 2, iters // 2, prior=prior)
+    tight = judged(T_first, K, obs, outlier)
+    X = triangulate(T_first, K, tight)
+    T_ba, _, cost = bundle_adjust(T_first, X, K, tight, 2, iters - iters // 2, prior=prior)
+    return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost)

@@ -1,0 +1,137 @@
+"""Feature bundle adjustment of the keyframes: tracks, triangulation, the solver, the prior."""
+
+import numpy as np
+import pytest
+import torch
+from repo import benchmark, usage_error
+
+from dimslam.common.geometry import pose
+from dimslam.common.io.datasets import open_dataset
+from dimslam.common.io.synth import write_sequence
+from dimslam.mapper.bundle import (
+    BundleConfig,
+    FeatureTracks,
+    Observations,
+    adjust,
+    bundle_adjust,
+    grey_image,
+    odometry_prior,
+    reprojection,
+    triangulate,
+)
+
+K = torch.tensor([[260.0, 0, 160], [0, 260.0, 120], [0, 0, 1]], dtype=torch.float64)
+
+
+def _scene(cameras=8, points=300, seed=0):
+    """Cameras stepping sideways and turning a little, looking at points 2-4 units ahead;
+    every camera sees every point (exact pixels)."""
+    g = torch.Generator().manual_seed(seed)
+    twists = torch.zeros(cameras, 6, dtype=torch.float64)
+    twists[:, 0] = torch.arange(cameras) * 0.1
+    twists[:, 4] = torch.arange(cameras) * 0.03
+    T_wc = pose.exp_se3(twists)
+    X = torch.rand(points, 3, generator=g, dtype=torch.float64) * torch.tensor([3.0, 2.0, 2.0])
+    X = X + torch.tensor([-1.0, -1.0, 2.0])
+    k = torch.arange(cameras).repeat_interleave(points)
+    p = torch.arange(points).repeat(cameras)
+    obs = Observations(k, p, torch.zeros(len(k), 2, dtype=torch.float64), torch.ones(len(k)))
+    r, _ = reprojection(pose.invert(T_wc), X, K, obs)
+    obs.uv = r  # residuals against (0, 0) are the pixels themselves
+    return T_wc, X, obs
+
+
+def _perturbed(T_wc, scale=0.01, seed=1):
+    noise = torch.randn(len(T_wc), 6, generator=torch.Generator().manual_seed(seed))
+    noise = noise.double() * scale
+    noise[:2] = 0  # the two held poses fix the gauge and the scale
+    return pose.exp_se3(noise) @ pose.invert(T_wc)
+
+
+def test_triangulation_recovers_exact_points():
+    T_wc, X, obs = _scene()
+    assert torch.allclose(triangulate(pose.invert(T_wc), K, obs), X, atol=1e-6)
+
+
+def test_bundle_adjustment_takes_perturbed_poses_back():
+    T_wc, X, obs = _scene()
+    T_cw = _perturbed(T_wc)
+    start, _ = reprojection(T_cw, triangulate(T_cw, K, obs), K, obs)
+    T_ba, X_ba, cost = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, 2, 30)
+    assert float(start.norm(dim=1).mean()) > 0.5  # the perturbation is seen
+    assert cost < 1e-8
+    assert torch.allclose(pose.invert(T_ba)[:, :3, 3], T_wc[:, :3, 3], atol=1e-6)
+    assert torch.allclose(X_ba, X, atol=1e-6)
+
+
+def test_outliers_are_judged_at_the_poses_and_left_out():
+    T_wc, X, obs = _scene()
+    wrong = torch.arange(0, len(obs.k), 37)  # every 37th observation 20 px off
+    obs.uv[wrong] += 20.0
+    result = adjust(T_wc, K, obs, 3.0, 20, None)
+    assert result.points == X.shape[0] - len(torch.unique(obs.p[wrong]))
+    assert torch.allclose(result.T_wc[:, :3, 3], T_wc[:, :3, 3], atol=1e-5)
+
+
+def test_odometry_prior_frees_the_step_length_and_holds_its_direction():
+    T_wc, _, _ = _scene()
+    prior = odometry_prior(T_wc, 0.2, 0.02)
+    assert float(prior(pose.invert(T_wc)).abs().max()) < 1e-9
+    longer = T_wc.clone()
+    longer[:, :3, 3] *= 1.5  # every step half as long again, same directions and turns
+    assert float(prior(pose.invert(longer)).abs().max()) < 1e-9
+    slid = T_wc.clone()
+    slid[3:, 1, 3] += 0.05  # one step that also goes down
+    assert float(prior(pose.invert(slid)).abs().max()) > 1.0
+
+
+def test_the_odometry_prior_places_a_pose_no_feature_sees():
+    T_wc, X, obs = _scene()
+    blind = obs.k != 5
+    obs = Observations(obs.k[blind], obs.p[blind], obs.uv[blind], obs.sigma[blind])
+    twist = torch.zeros(len(T_wc), 6, dtype=torch.float64)
+    twist[5] = torch.tensor([0.02, -0.01, 0.01, 0.02, 0.0, -0.01])
+    T_cw = pose.exp_se3(twist) @ pose.invert(T_wc)
+    prior = odometry_prior(T_wc, 0.2, 0.02)
+    T_ba, _, _ = bundle_adjust(T_cw, X, K, obs, 2, 30, prior=prior)
+    assert torch.allclose(pose.invert(T_ba)[5], T_wc[5], atol=1e-5)
+
+
+def test_tracks_link_the_features_of_a_rendered_walk(tmp_path):
+    """The built-in scene's first frames: features chain into tracks over several keyframes,
+    and at the true poses they reproject within a pixel or two."""
+    out = tmp_path / "seq"
+    write_sequence(out, frames=12, width=320, height=240, noise=0.0)
+
+    reader = open_dataset(out)
+    frames = list(reader)[::3]
+    cam = reader.camera
+    Kc = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
+    tracks = FeatureTracks(Kc, 1500, 8)
+    for f in frames:
+        tracks.add(f.index, grey_image(f.rgb))
+    obs = tracks.observations([f.index for f in frames])
+    assert obs.points > 100 and int(torch.bincount(obs.p).max()) == len(frames)
+    T_cw = pose.invert(torch.from_numpy(np.stack([f.T_wc for f in frames])))
+    r, _ = reprojection(
+        T_cw, triangulate(T_cw, torch.from_numpy(Kc), obs), torch.from_numpy(Kc), obs
+    )
+    assert float(r.norm(dim=1).median()) < 0.5
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="positive"):
+        BundleConfig(turn_deg=0)
+    with pytest.raises(ValueError, match="neighbours"):
+        BundleConfig(neighbours=0)
+
+
+def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch, capsys):
+    fba = benchmark(monkeypatch, "feature_ba")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "keyframes.txt").write_text("# keyframes\n123.0 0 0 0 0 0 0 1\n")
+    data = tmp_path / "seq"
+    write_sequence(data, frames=3, width=80, height=60)
+    err = usage_error(monkeypatch, capsys, fba.main, ["feature_ba.py", str(run), str(data)])
+    assert "0 of 1 keyframes found" in err
