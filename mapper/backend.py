@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from dimslam.common.config import SlamConfig
+from dimslam.common.eval.evaluation import umeyama
 from dimslam.common.eval.mesh_views import write_mesh_views
 from dimslam.common.geometry import pose, sim3
 from dimslam.common.geometry.camera import Camera
@@ -47,6 +48,29 @@ if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s
     import trimesh
 
 log = logging.getLogger(__name__)
+
+
+SCALE_STEPS = 5
+"""Keyframe steps over which a keyframe's change of scale is measured (`local_scales`)."""
+
+
+def local_scales(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """How much the path about each keyframe grew from `before` to `after` (`(n, 4, 4)`
+    poses of the keyframes in path order): the length of the `SCALE_STEPS` steps about the
+    keyframe's step to the next one, after against before. A single step between keyframes
+    is short enough for its ratio to be noise (0.6-2.1 on room0)."""
+    n = len(before)
+    if n < 2:
+        return torch.ones(n, dtype=after.dtype)
+    old = (before[1:, :3, 3] - before[:-1, :3, 3]).norm(dim=1).to(after.dtype)
+    new = (after[1:, :3, 3] - after[:-1, :3, 3]).norm(dim=1)
+    half = SCALE_STEPS // 2
+    scales = []
+    for k in range(n):
+        a, b = max(0, min(k, n - 2) - half), min(n - 1, min(k, n - 2) + half + 1)
+        length = old[a:b].sum()
+        scales.append(new[a:b].sum() / length if length > 1e-9 else torch.ones(()))
+    return torch.stack(scales).to(after.dtype)
 
 
 class BackEnd:
@@ -277,8 +301,8 @@ class BackEnd:
     def adjust_keyframes(self) -> None:
         """Refine every described keyframe's pose by the feature bundle adjustment
         (`mapper/bundle.py`); the frames anchored to a keyframe follow it, their offsets
-        scaled as its step to the next keyframe was, and the map is refitted to the new
-        poses where they moved most."""
+        scaled as the path about it was (`local_scales`), and the map is refitted to the
+        new poses where they moved most."""
         assert self.tracks is not None
         cfg = self.cfg.bundle
         keyframes = [kf for kf in self.keyframes if kf.index in self.tracks]
@@ -290,12 +314,14 @@ class BackEnd:
         K = torch.from_numpy(self.camera.K)
         prior = odometry_prior(T_wc, cfg.turn_deg, cfg.direction)
         result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
-        # Each keyframe's offsets to the frames after it scale as its step to the next did.
-        before = (T_wc[1:, :3, 3] - T_wc[:-1, :3, 3]).norm(dim=1)
-        after = (result.T_wc[1:, :3, 3] - result.T_wc[:-1, :3, 3]).norm(dim=1)
-        ratio = torch.where(before > 1e-9, after / before.clamp_min(1e-9), torch.ones_like(after))
-        scales = torch.cat([ratio, ratio[-1:]])
-        moved = self._move(keyframes, sim3.from_pose(result.T_wc, scales))
+        # The adjustment holds only the first two keyframes, so the path as a whole may come
+        # out turned or scaled about them: brought back onto the old path by the similarity
+        # that fits it best, the keyframes move only by what the features changed (the map
+        # was fitted to the old path).
+        fit = umeyama(result.T_wc[:, :3, 3].numpy(), T_wc[:, :3, 3].numpy())
+        T_new = torch.from_numpy(fit.apply_poses(result.T_wc.numpy()))
+        scales = local_scales(T_wc, T_new)
+        moved = self._move(keyframes, sim3.from_pose(T_new, scales))
         log.info(
             "feature bundle adjustment of %d keyframes: %d points, %d observations, cost "
             "%.1f; keyframes moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
