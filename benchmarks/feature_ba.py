@@ -61,6 +61,20 @@ def keyframe_ate(T_wc: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt((e**2).sum(1).mean()) * 100)
 
 
+def step_errors(T_wc: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How far each step between consecutive poses of `T_wc` turned (degrees) and pointed
+    (unit vectors, over the steps of at least half the median length) from the truth's: what
+    the odometry prior's `DEG` and `DIR` stand for."""
+    est = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
+    true = pose.compose(pose.invert(truth[:-1]), truth[1:])
+    turn = pose.log_so3(true[:, :3, :3].transpose(1, 2) @ est[:, :3, :3]).norm(dim=1)
+    length = true[:, :3, 3].norm(dim=1)
+    unit_est = est[:, :3, 3] / est[:, :3, 3].norm(dim=1, keepdim=True).clamp_min(1e-12)
+    unit_true = true[:, :3, 3] / length[:, None].clamp_min(1e-12)
+    long = length >= 0.5 * length.median()
+    return torch.rad2deg(turn), (unit_est - unit_true).norm(dim=1)[long]
+
+
 def main() -> None:
     defaults = BundleConfig()
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -153,6 +167,12 @@ def main() -> None:
     print(
         f"{n} keyframes, {obs.points} points, {len(obs.k)} observations; points seen by "
         f"2 / 3 / 4+ keyframes: {two} / {three} / {more}"
+    )
+    turn, heading = step_errors(run, torch.from_numpy(gt))
+    print(
+        f"the run's steps between keyframes against the truth: turn error {turn.median():.3f} "
+        f"deg median, {turn.quantile(0.9):.3f} p90; direction error (steps of at least half "
+        f"the median length) {heading.median():.3f} median, {heading.quantile(0.9):.3f} p90"
     )
     print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
     prior = None if args.odometry is None else odometry_prior(run, *args.odometry)
