@@ -35,19 +35,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
-from dimslam.common.eval.evaluation import umeyama
+from dimslam.common.eval.evaluation import evaluate_trajectory, umeyama
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
-from dimslam.common.io.trajectory import read_tum
+from dimslam.common.io.trajectory import Trajectory, read_tum
 from dimslam.mapper.bundle import (
     BundleConfig,
     FeatureTracks,
     adjust,
     bundle_adjust,
+    grey_image,
     odometry_prior,
     reprojection,
     triangulate,
@@ -55,10 +55,10 @@ from dimslam.mapper.bundle import (
 
 
 def keyframe_ate(T_wc: np.ndarray, truth: np.ndarray) -> float:
-    """Keyframe ATE (cm) after Sim(3)."""
-    S = umeyama(T_wc[:, :3, 3], truth[:, :3, 3])
-    e = S.apply_points(T_wc[:, :3, 3]) - truth[:, :3, 3]
-    return float(np.sqrt((e**2).sum(1).mean()) * 100)
+    """Keyframe ATE (cm) after Sim(3), by the evaluator (poses matched one to one)."""
+    stamps = np.arange(len(T_wc), dtype=np.float64)
+    metrics = evaluate_trajectory(Trajectory(stamps, T_wc), Trajectory(stamps, truth))
+    return metrics.ate_rmse_m * 100
 
 
 def step_errors(T_wc: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -125,14 +125,13 @@ def main() -> None:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
-    cam = reader.camera
-    K = torch.tensor([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]], dtype=torch.float64)
+    K = torch.from_numpy(reader.camera.K)
     wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}
     images, truth = {}, {}
     for frame in reader:
         k = wanted.get(round(frame.timestamp, 4))
         if k is not None:
-            images[k] = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+            images[k] = grey_image(frame.rgb)
             truth[k] = frame.T_wc
     if len(images) != len(wanted) or any(t is None for t in truth.values()):
         p.error(f"{args.dataset}: {len(images)} of {len(wanted)} keyframes found with ground truth")
