@@ -1,7 +1,7 @@
 """Whether sparse features see a run's drift: ORB bundle adjustment over its keyframes.
 
-    python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR] [--starts run,truth,blind]
-        [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
+    python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR [--length L] [--linked N]]
+        [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -24,6 +24,10 @@ outliers judged at its own poses (`mapper.bundle.adjust`).
 `--odometry DEG DIR` adds the run's own steps between consecutive keyframes as a prior,
 without their lengths (each turn within DEG degrees, each direction within DIR): the
 photometric tracker's local motion, which is accurate, with the scale left to the features.
+Where two consecutive keyframes share fewer than `--linked` points, their step's length
+relative to the step before is held too (within `--length`, log of the ratio), so that a
+stretch no feature sees keeps its neighbours' scale (as `bundle.length` and `bundle.linked`
+in the mapper; `--linked 0` leaves every length to the features).
 
 `--noise PX` replaces every observation by the projection of its point at the true poses
 plus Gaussian noise: the features as an ideal detector would give them, which separates
@@ -42,13 +46,15 @@ from dimslam.common.eval.evaluation import evaluate_trajectory, umeyama
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, read_tum
+from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
     BundleConfig,
     FeatureTracks,
     adjust,
     bundle_adjust,
     grey_image,
-    odometry_prior,
+    links,
+    prior_for,
     reprojection,
     triangulate,
 )
@@ -73,6 +79,24 @@ def step_errors(T_wc: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, 
     unit_true = true[:, :3, 3] / length[:, None].clamp_min(1e-12)
     long = length >= 0.5 * length.median()
     return torch.rad2deg(turn), (unit_est - unit_true).norm(dim=1)[long]
+
+
+def carried(frames: Trajectory, keyframes: Trajectory, adjusted: torch.Tensor) -> np.ndarray:
+    """Every frame of a run moved as the mapper moves it when its keyframes are adjusted
+    (`BackEnd.adjust_keyframes`): each keyframe to its adjusted pose brought back onto the
+    old path, each other frame with the keyframe before it, its offset scaled as the path
+    about that keyframe grew."""
+    T_new, scales = brought_back(torch.from_numpy(keyframes.poses), adjusted)
+    ref = np.searchsorted(keyframes.timestamps, frames.timestamps + 1e-6, side="right") - 1
+    out = []
+    for T, k in zip(frames.poses, ref, strict=True):
+        if k < 0:
+            out.append(T)
+            continue
+        rel = np.linalg.inv(keyframes.poses[k]) @ T
+        rel[:3, 3] *= float(scales[k])
+        out.append(T_new[k].numpy() @ rel)
+    return np.stack(out)
 
 
 def main() -> None:
@@ -117,18 +141,33 @@ def main() -> None:
         default=defaults.views,
         help="the least keyframes a track is used from",
     )
+    p.add_argument(
+        "--length",
+        type=float,
+        default=defaults.length,
+        help="with --odometry: each step's length relative to the step before held within "
+        "this (log of the ratio) where --linked features do not link its keyframes",
+    )
+    p.add_argument(
+        "--linked",
+        type=int,
+        default=defaults.linked,
+        help="with --odometry: points two consecutive keyframes share from which their "
+        "step's length is left to the features (0: lengths free everywhere)",
+    )
     p.add_argument("--width", type=int, default=320, help="image width (the cpu preset's)")
     args = p.parse_args()
-    if args.neighbours < 1 or args.iters < 0:
-        p.error("--neighbours must be >= 1 and --iters >= 0")
+    if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
+        p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
     K = torch.from_numpy(reader.camera.K)
     wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}
-    images, truth = {}, {}
+    images, truth, every_truth = {}, {}, {}
     for frame in reader:
+        every_truth[round(frame.timestamp, 4)] = frame.T_wc
         k = wanted.get(round(frame.timestamp, 4))
         if k is not None:
             images[k] = grey_image(frame.rgb)
@@ -173,20 +212,49 @@ def main() -> None:
         f"deg median, {turn.quantile(0.9):.3f} p90; direction error (steps of at least half "
         f"the median length) {heading.median():.3f} median, {heading.quantile(0.9):.3f} p90"
     )
+    shared = links(unjudged, n)
+    print(
+        f"points two consecutive keyframes share: median {int(shared.median())}, "
+        f"{int((shared < args.linked).sum())} of {n - 1} steps under --linked {args.linked}"
+    )
+    prior = None
+    if args.odometry is not None:
+        turn_deg, direction = args.odometry
+        prior = prior_for(
+            run,
+            unjudged,
+            BundleConfig(
+                turn_deg=turn_deg, direction=direction, length=args.length, linked=args.linked
+            ),
+        )
     print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
-    prior = None if args.odometry is None else odometry_prior(run, *args.odometry)
+    blind = None
     for name in args.starts.split(","):
         T_wc = starts["run" if name == "blind" else name]
         T_cw = pose.invert(T_wc)
         if name == "blind":
             result = adjust(T_wc, K, unjudged, args.outlier, args.iters, prior)
             T_ba, cost, held = result.T_wc, result.cost, "-"
+            blind = T_ba
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
             T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, 2, args.iters, prior=prior)
             T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
         before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
         print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
+    path = args.run / "trajectory.txt"
+    if blind is not None and path.exists():
+        frames = read_tum(path)
+        moved = carried(frames, keyframes, blind)
+        gt_all = [every_truth.get(round(float(t), 4)) for t in frames.timestamps]
+        if any(T is None for T in gt_all):
+            p.error(f"{path}: frames without ground truth in {args.dataset}")
+        stamps, truth_all = frames.timestamps, Trajectory(frames.timestamps, np.stack(gt_all))
+        before = evaluate_trajectory(frames, truth_all).ate_rmse_m * 100
+        after = evaluate_trajectory(Trajectory(stamps, moved), truth_all).ate_rmse_m * 100
+        print(
+            f"every frame (trajectory.txt, as the mapper carries them): {before:.2f} -> {after:.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
-from dimslam.mapper.bundle import FeatureTracks, adjust, grey_image, odometry_prior
+from dimslam.mapper.bundle import FeatureTracks, adjust, grey_image, prior_for
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 from dimslam.tracker.frontend import MAX_VELOCITY_STEPS, carry_motion
@@ -71,6 +71,17 @@ def local_scales(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
         length = old[a:b].sum()
         scales.append(new[a:b].sum() / length if length > 1e-9 else torch.ones(()))
     return torch.stack(scales).to(after.dtype)
+
+
+def brought_back(before: torch.Tensor, adjusted: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keyframe poses `adjusted` (float64, path order) from `before` brought back onto the
+    old path by the similarity that fits them best, so that they move only by what the
+    adjustment changed in the path's shape (the map was fitted to the old path), and how
+    much the path about each keyframe grew (`local_scales`): the scale of the offsets of
+    the frames anchored to it."""
+    fit = umeyama(adjusted[:, :3, 3].numpy(), before[:, :3, 3].numpy())
+    after = torch.from_numpy(fit.apply_poses(adjusted.numpy()))
+    return after, local_scales(before, after)
 
 
 class BackEnd:
@@ -312,15 +323,11 @@ class BackEnd:
         obs = self.tracks.observations([kf.index for kf in keyframes], cfg.views)
         T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])
         K = torch.from_numpy(self.camera.K)
-        prior = odometry_prior(T_wc, cfg.turn_deg, cfg.direction)
+        prior = prior_for(T_wc, obs, cfg)
         result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
         # The adjustment holds only the first two keyframes, so the path as a whole may come
-        # out turned or scaled about them: brought back onto the old path by the similarity
-        # that fits it best, the keyframes move only by what the features changed (the map
-        # was fitted to the old path).
-        fit = umeyama(result.T_wc[:, :3, 3].numpy(), T_wc[:, :3, 3].numpy())
-        T_new = torch.from_numpy(fit.apply_poses(result.T_wc.numpy()))
-        scales = local_scales(T_wc, T_new)
+        # out turned or scaled about them.
+        T_new, scales = brought_back(T_wc, result.T_wc)
         moved = self._move(keyframes, sim3.from_pose(T_new, scales))
         log.info(
             "feature bundle adjustment of %d keyframes: %d points, %d observations, cost "

@@ -77,6 +77,20 @@ class BundleConfig:
         "proportion. The tracked steps point 0.04-0.07 from the truth's (median norm over "
         "the rooms' runs; 0.03 per component).",
     )
+    length: float = option(
+        0.05,
+        "The odometry prior's standard error on the log of a step's length relative to the "
+        "step before, where features do not link the step's keyframes (`linked`). The "
+        "tracked steps' ratios are off by 0.04-0.05 (median over the rooms' runs), 0.1-0.2 "
+        "on 7-Scenes.",
+    )
+    linked: int = option(
+        50,
+        "Points two consecutive keyframes must share for their step's length to be left to "
+        "the features alone; with fewer it is held as well, in full where they share none "
+        "(room5's textureless wall, which no feature sees, kept the scale of its "
+        "neighbours). 0: lengths free everywhere.",
+    )
     iters: int = option(60, "Levenberg-Marquardt iterations (two passes of half).")
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
@@ -87,10 +101,12 @@ class BundleConfig:
             raise ValueError(
                 "bundle: features >= 8, neighbours >= 1, iters >= 0 and refit_iters >= 0 needed"
             )
+        if self.linked < 0:
+            raise ValueError(f"bundle.linked must be at least 0, got {self.linked}")
         if self.views < 2:
             raise ValueError(f"bundle.views must be at least 2, got {self.views}")
-        if min(self.outlier, self.turn_deg, self.direction) <= 0:
-            raise ValueError("bundle: outlier, turn_deg and direction must be positive")
+        if min(self.outlier, self.turn_deg, self.direction, self.length) <= 0:
+            raise ValueError("bundle: outlier, turn_deg, direction and length must be positive")
 
 
 @dataclass
@@ -384,28 +400,73 @@ def bundle_adjust(
     return T_cw, X, cost
 
 
+def links(obs: Observations, n: int) -> torch.Tensor:
+    """`(n - 1,)` how many points each pair of consecutive poses of `n` both see."""
+    order = torch.argsort(obs.p * n + obs.k)
+    p, k = obs.p[order], obs.k[order]
+    both = (p[1:] == p[:-1]) & (k[1:] == k[:-1] + 1)
+    return torch.bincount(k[:-1][both], minlength=n - 1)[: n - 1]
+
+
 def odometry_prior(
-    T_wc: torch.Tensor, turn_deg: float, direction: float
+    T_wc: torch.Tensor,
+    turn_deg: float,
+    direction: float,
+    length: float | None = None,
+    linked: torch.Tensor | None = None,
+    full: int = 1,
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     """Whitened residuals (of world-to-camera poses) that keep each step between
     consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
     direction (unit vectors within `direction` for a step of the median length, in
-    proportion to the length for the others: a short step's direction says little), its
-    length free: a tracker's local motion without its scale."""
+    proportion to the length for the others: a short step's direction says little): a
+    tracker's local motion without its scale.
+
+    With `length`, a step's length relative to the step before is held as well (log of the
+    ratio within `length`; lengths softened by a quarter of the median so that turns in
+    place count little), as far as features do not link its poses: in full where its two
+    poses share no point (`linked`, from `links`), not at all from `full` shared points
+    on. Steps that no feature sees then keep their neighbours' scale instead of any."""
     rel = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
-    length = rel[:, :3, 3].norm(dim=1, keepdim=True)
-    heading = rel[:, :3, 3] / length.clamp_min(1e-12)
-    weight = length / length.median().clamp_min(1e-12) / direction
+    size = rel[:, :3, 3].norm(dim=1, keepdim=True)
+    median = size.median().clamp_min(1e-12)
+    heading = rel[:, :3, 3] / size.clamp_min(1e-12)
+    weight = size / median / direction
+    soft = 0.25 * median
+
+    def log_ratios(step_length: torch.Tensor) -> torch.Tensor:
+        log = torch.log(step_length + soft)
+        return log[1:] - log[:-1]
+
+    ratios = log_ratios(size.ravel())
+    held = torch.ones(len(size), dtype=T_wc.dtype)
+    if linked is not None:
+        held = (1 - linked.to(T_wc.dtype) / full).clamp_min(0)
+    # A ratio joins two steps: held as much as the worse linked of them, so that a stretch
+    # no feature sees takes its scale from the steps on either side.
+    ratio_weight = torch.maximum(held[1:], held[:-1]) / (length or 1.0)
 
     def residuals(T_cw: torch.Tensor) -> torch.Tensor:
         step = pose.compose(T_cw[:-1], pose.invert(T_cw[1:]))
         turn = pose.log_so3(rel[:, :3, :3].transpose(1, 2) @ step[:, :3, :3])
-        t = step[:, :3, 3] / step[:, :3, 3].norm(dim=1, keepdim=True).clamp_min(1e-12)
-        return torch.cat(
-            [(turn / math.radians(turn_deg)).ravel(), ((t - heading) * weight).ravel()]
-        )
+        moved = step[:, :3, 3].norm(dim=1, keepdim=True)
+        t = step[:, :3, 3] / moved.clamp_min(1e-12)
+        parts = [(turn / math.radians(turn_deg)).ravel(), ((t - heading) * weight).ravel()]
+        if length is not None:
+            parts.append((log_ratios(moved.ravel()) - ratios) * ratio_weight)
+        return torch.cat(parts)
 
     return residuals
+
+
+def prior_for(
+    T_wc: torch.Tensor, obs: Observations, cfg: BundleConfig
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`."""
+    if cfg.linked == 0:
+        return odometry_prior(T_wc, cfg.turn_deg, cfg.direction)
+    shared = links(obs, len(T_wc))
+    return odometry_prior(T_wc, cfg.turn_deg, cfg.direction, cfg.length, shared, cfg.linked)
 
 
 def judged(T_cw: torch.Tensor, K: torch.Tensor, obs: Observations, limit: float) -> Observations:

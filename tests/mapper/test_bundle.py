@@ -8,6 +8,8 @@ from repo import benchmark, usage_error
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import open_dataset
 from dimslam.common.io.synth import write_sequence
+from dimslam.common.io.trajectory import Trajectory
+from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
     BundleConfig,
     FeatureTracks,
@@ -15,7 +17,9 @@ from dimslam.mapper.bundle import (
     adjust,
     bundle_adjust,
     grey_image,
+    links,
     odometry_prior,
+    prior_for,
     reprojection,
     triangulate,
 )
@@ -97,6 +101,27 @@ def test_the_odometry_prior_places_a_pose_no_feature_sees():
     assert torch.allclose(pose.invert(T_ba)[5], T_wc[5], atol=1e-5)
 
 
+def test_a_stretch_no_feature_sees_keeps_the_scale_of_its_neighbours():
+    """Cameras 0-4 see one set of points, 7-11 another, 5 and 6 none: the features alone
+    cannot tell the second part's scale from the first's, the step lengths held across the
+    unlinked steps can."""
+    T_wc, X, obs = _scene(cameras=12, points=200)
+    seen = ((obs.k <= 4) & (obs.p < 100)) | ((obs.k >= 7) & (obs.p >= 100))
+    obs = Observations(obs.k[seen], obs.p[seen], obs.uv[seen], obs.sigma[seen])
+    assert links(obs, 12).tolist() == [100] * 4 + [0] * 3 + [100] * 4
+    start = T_wc.clone()
+    start[5:, :3, 3] = T_wc[4, :3, 3] + 1.3 * (T_wc[5:, :3, 3] - T_wc[4, :3, 3])
+    T_cw = pose.invert(start)
+    X_start = triangulate(T_cw, K, obs)
+
+    def adjusted(cfg):
+        T_ba, _, _ = bundle_adjust(T_cw, X_start, K, obs, 2, 40, prior=prior_for(T_wc, obs, cfg))
+        return (pose.invert(T_ba)[:, :3, 3] - T_wc[:, :3, 3]).norm(dim=1).max()
+
+    assert float(adjusted(BundleConfig(linked=0))) > 0.1  # the second part stays 1.3x
+    assert float(adjusted(BundleConfig(linked=50))) < 1e-3
+
+
 def test_tracks_link_the_features_of_a_rendered_walk(tmp_path):
     """The built-in scene's first frames: features chain into tracks over several keyframes,
     and at the true poses they reproject within a pixel or two."""
@@ -135,3 +160,26 @@ def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch
     write_sequence(data, frames=3, width=80, height=60)
     err = usage_error(monkeypatch, capsys, fba.main, ["feature_ba.py", str(run), str(data)])
     assert "0 of 1 keyframes found" in err
+
+
+def test_the_benchmark_carries_every_frame_as_the_mapper_does(monkeypatch):
+    """Keyframes that the adjustment left where they were leave every frame where it was;
+    keyframes moved take the frames after them along, scaled as the path about them grew."""
+    fba = benchmark(monkeypatch, "feature_ba")
+    twists = torch.zeros(9, 6, dtype=torch.float64)
+    twists[:, 0] = torch.arange(9) * 0.1
+    twists[:, 5] = torch.arange(9) * 0.02
+    every = Trajectory(np.arange(9.0), pose.exp_se3(twists).numpy())
+    keyframes = Trajectory(every.timestamps[::2], every.poses[::2])
+    assert np.allclose(
+        fba.carried(every, keyframes, torch.from_numpy(keyframes.poses)), every.poses
+    )
+    longer = torch.from_numpy(keyframes.poses).clone()
+    longer[3:, 0, 3] += 0.2  # the step from keyframe 2 to 3 grows from 0.2 to 0.4
+    moved = fba.carried(every, keyframes, longer)
+    T_new, scales = brought_back(torch.from_numpy(keyframes.poses), longer)
+    assert np.allclose(moved[::2], T_new.numpy())
+    offset = np.linalg.inv(moved[4]) @ moved[5]  # frame 5 after keyframe 2 (frame 4)
+    tracked = np.linalg.inv(every.poses[4]) @ every.poses[5]
+    assert np.allclose(offset[:3, 3], tracked[:3, 3] * float(scales[2]))
+    assert abs(float(scales[2]) - 1) > 0.01  # a scale that the check can see
