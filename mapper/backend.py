@@ -292,13 +292,17 @@ class BackEnd:
             if not f.keyframe and f.index in self.anchors:
                 f.T_wc = self.final_pose(f)
 
-    def finish(self) -> None:
+    def finish(self) -> bool:
         """End of the sequence: the feature bundle adjustment (`bundle.enabled`) and the
-        optional post-optimization over all keyframes."""
-        if self.initialized and self.tracks is not None:
+        optional post-optimization over all keyframes. Returns whether either ran (poses or
+        map changed)."""
+        if not self.initialized:
+            return False
+        if self.tracks is not None:
             self.adjust_keyframes()
-        if self.initialized and self.cfg.mapper.post_iters > 0:
+        if self.cfg.mapper.post_iters > 0:
             self.mapper.post_optimize(self.keyframes)
+        return self.tracks is not None or self.cfg.mapper.post_iters > 0
 
     def _describe(self, window: list[FrameState]) -> None:
         """Add the window's new keyframes to the feature tracks (`bundle.enabled`)."""

@@ -378,8 +378,7 @@ class MapperService:
         if self.back is None:
             log.warning("end of stream before any map was built")
             return
-        if self.cfg.mapper.post_iters > 0:
-            self.back.finish()
+        if self.back.finish():
             self._publish(self.rounds, [])
         log.info("end of stream: map version %d, %d frames", self.version, len(self.frames))
 

@@ -152,6 +152,19 @@ def test_a_sparse_map_travels_between_the_processes(sequence, tmp_path):
     assert snap.state["geometry.blocks"].dtype == np.int64 and len(snap.state["geometry.blocks"])
 
 
+def test_the_mappers_end_of_run_bundle_adjustment_reaches_the_trajectory(sequence, tmp_path):
+    """`--bundle.enabled true` in the service: the mapper adjusts its keyframes when the
+    stream ends and publishes them; the trajectory written is the adjusted one."""
+    out = tmp_path / "run"
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--bundle.enabled", "true"]
+    assert main(["run", str(sequence), "--out", str(out), *args]) == 0
+    assert "feature bundle adjustment of" in (out / "mapper.log").read_text()
+    final, online = read_tum(out / "trajectory.txt"), read_tum(out / "trajectory_online.txt")
+    assert len(final) == len(online) == FRAMES
+    assert not np.allclose(final.poses, online.poses, atol=1e-6)
+    assert json.loads((out / "metrics.json").read_text())["ate_rmse_m"] < 0.04
+
+
 def test_realtime_replays_the_sequence_as_a_live_camera(sequence, tmp_path, capsys):
     """`--realtime`: the camera holds only until the map exists, then sends at the rate and
     never waits; the tracker keeps the newest frame when busy and reports what it did."""
