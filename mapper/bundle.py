@@ -49,8 +49,9 @@ class BundleConfig:
     enabled: bool = option(
         False,
         "At the end of a run, refine every keyframe pose by its ORB features' reprojection "
-        "error with the tracked steps' turns and directions as a prior (not their lengths), "
-        "and move the other frames and the map with them.",
+        "error with the tracked steps' turns and directions as a prior (their lengths only "
+        "where features do not link the keyframes), and move the other frames and the map "
+        "with them (on in the cpu preset).",
     )
     features: int = option(1500, "ORB features per keyframe.")
     neighbours: int = option(8, "Keyframes before each new one that it is matched with.")
@@ -81,15 +82,16 @@ class BundleConfig:
         0.05,
         "The odometry prior's standard error on the log of a step's length relative to the "
         "step before, where features do not link the step's keyframes (`linked`). The "
-        "tracked steps' ratios are off by 0.04-0.05 (median over the rooms' runs), 0.1-0.2 "
-        "on 7-Scenes.",
+        "tracked steps' ratios are off by 0.04-0.05 (median over the rooms' runs).",
     )
     linked: int = option(
-        50,
+        10,
         "Points two consecutive keyframes must share for their step's length to be left to "
-        "the features alone; with fewer it is held as well, in full where they share none "
-        "(room5's textureless wall, which no feature sees, kept the scale of its "
-        "neighbours). 0: lengths free everywhere.",
+        "the features alone; with fewer it is held as well, in full where they share none. "
+        "Without it, a stretch no feature sees (room5's textureless wall) leaves the scale "
+        "of the path after it free, and the adjustment puts it anywhere; held wherever fewer "
+        "than 50 points link the keyframes, it holds room3's drift too (docs/results.md). "
+        "0: lengths free everywhere.",
     )
     iters: int = option(60, "Levenberg-Marquardt iterations (two passes of half).")
     refit_iters: int = option(
