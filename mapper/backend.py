@@ -124,6 +124,7 @@ class BackEnd:
         self.tracks = (
             FeatureTracks(camera.K, bundle.features, bundle.neighbours) if bundle.enabled else None
         )
+        self.adjusted_at = 0  # keyframes with features at the last adjustment
 
     @property
     def field(self):
@@ -170,6 +171,10 @@ class BackEnd:
             self.refine_global()
         self._close_loops(window)
         self._describe(window)
+        every = self.cfg.bundle.every
+        if self.tracks is not None and every > 0:
+            if len(self.tracks.keyframes) - self.adjusted_at >= every:
+                self.adjust_keyframes()
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
@@ -323,6 +328,7 @@ class BackEnd:
         keyframes = [kf for kf in self.keyframes if kf.index in self.tracks]
         if len(keyframes) < 3:
             return
+        self.adjusted_at = len(self.tracks.keyframes)
         started = time.perf_counter()
         obs = self.tracks.observations([kf.index for kf in keyframes], cfg.views)
         T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])

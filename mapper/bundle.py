@@ -93,6 +93,11 @@ class BundleConfig:
         "than 50 points link the keyframes, it holds room3's drift too (docs/results.md). "
         "0: lengths free everywhere.",
     )
+    every: int = option(
+        0,
+        "Also adjust during the run, each time this many new keyframes have features, so "
+        "that the map and the tracker go on from the corrected poses (0: only at the end).",
+    )
     iters: int = option(60, "Levenberg-Marquardt iterations (two passes of half).")
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
@@ -103,8 +108,8 @@ class BundleConfig:
             raise ValueError(
                 "bundle: features >= 8, neighbours >= 1, iters >= 0 and refit_iters >= 0 needed"
             )
-        if self.linked < 0:
-            raise ValueError(f"bundle.linked must be at least 0, got {self.linked}")
+        if self.linked < 0 or self.every < 0:
+            raise ValueError("bundle: linked and every must be at least 0")
         if self.views < 2:
             raise ValueError(f"bundle.views must be at least 2, got {self.views}")
         if min(self.outlier, self.turn_deg, self.direction, self.length) <= 0:

@@ -108,6 +108,21 @@ def test_tiny_preset_tracks_a_synthetic_sequence(forty, tmp_path):
 
 
 @pytest.mark.e2e
+def test_the_bundle_adjustment_during_the_run(forty, tmp_path):
+    """`--bundle.every 3`: the keyframes are adjusted each time three more have features,
+    the run goes on from the corrected poses and map, and again at the end."""
+    out = tmp_path / "run"
+    args = ["--bundle.enabled", "true", "--bundle.every", "3", "--no-mesh"]
+    assert main([*one_process(forty, out), *args]) == 0
+    adjusted = (out / "log.txt").read_text().count("feature bundle adjustment of")
+    keyframes = len(read_tum(out / "keyframes.txt"))
+    assert adjusted >= 2 and adjusted >= keyframes // 3
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["matched"] == 40 and metrics["frames_lost"] == 0
+    assert metrics["ate_rmse_m"] < 0.04
+
+
+@pytest.mark.e2e
 def test_tiny_preset_tracks_three_times_the_motion_per_frame(tmp_path):
     """Fast motion: every third frame of 60 (4.8 cm and 1.9 degrees per frame): every
     frame posed, none lost, within about 2x the accuracy of all 60 frames (2.6 cm measured
