@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+from torch.autograd import forward_ad
 
 from dimslam.common.geometry import pose
 from dimslam.common.options import option
@@ -302,7 +303,7 @@ def bundle_adjust(
     fixed: int,
     iters: int,
     delta: float = 1.5,
-    prior: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    prior: Prior | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Huber reprojection cost over every pose after the first `fixed` and every point.
     `prior(T_cw)`, if given, adds whitened residuals on the poses alone. Returns the poses,
@@ -322,15 +323,7 @@ def bundle_adjust(
     lam = 1e-3
     for _ in range(iters):
         if use_prior:
-
-            def moved(step, base=T_cw):
-                T = base.clone()
-                T[fixed:] = pose.exp_se3(step.reshape(m, 6)) @ base[fixed:]
-                return prior(T)
-
-            zero = torch.zeros(6 * m, dtype=X.dtype)
-            J_prior = torch.autograd.functional.jacobian(moved, zero, vectorize=True)
-            r_prior = moved(zero)
+            r_prior, J_prior = prior.jacobian(T_cw, fixed)
         norm = r.norm(dim=1)
         w = torch.where(norm <= delta, torch.ones_like(norm), delta / norm.clamp_min(1e-12))
         x, y, z = c.unbind(1)
@@ -416,6 +409,42 @@ def links(obs: Observations, n: int) -> torch.Tensor:
     return torch.bincount(k[:-1][both], minlength=n - 1)[: n - 1]
 
 
+@dataclass(frozen=True)
+class Prior:
+    """Whitened residuals on world-to-camera poses alone, each depending on at most
+    `reach` consecutive poses, the first of them `first[i]` for residual `i`: what lets
+    its Jacobian be taken in `6 reach` forward passes instead of one per residual."""
+
+    residuals: Callable[[torch.Tensor], torch.Tensor]
+    first: torch.Tensor
+    reach: int
+
+    def __call__(self, T_cw: torch.Tensor) -> torch.Tensor:
+        return self.residuals(T_cw)
+
+    def jacobian(self, T_cw: torch.Tensor, fixed: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The residuals at `T_cw` and their Jacobian with respect to left increments
+        (v, w) of the poses after the first `fixed`: poses `reach` apart share no residual,
+        so one forward-mode pass per colour (index mod `reach`) and coordinate gives every
+        pose of that colour's columns at once."""
+        n = len(T_cw)
+        index = torch.arange(n)
+        r = self(T_cw)
+        J = torch.zeros(len(r), 6 * (n - fixed), dtype=T_cw.dtype)
+        rows = torch.arange(len(r))
+        for colour in range(self.reach):
+            owner = self.first + (colour - self.first) % self.reach  # the row's pose of it
+            valid = (owner >= fixed) & (owner < n)
+            for d in range(6):
+                direction = torch.zeros(n, 6, dtype=T_cw.dtype)
+                direction[(index % self.reach == colour) & (index >= fixed), d] = 1
+                with forward_ad.dual_level():
+                    s = forward_ad.make_dual(torch.zeros(n, 6, dtype=T_cw.dtype), direction)
+                    out = forward_ad.unpack_dual(self(pose.exp_se3(s) @ T_cw)).tangent
+                J[rows[valid], (owner[valid] - fixed) * 6 + d] = out[valid]
+        return r, J
+
+
 def odometry_prior(
     T_wc: torch.Tensor,
     turn_deg: float,
@@ -423,7 +452,7 @@ def odometry_prior(
     length: float | None = None,
     linked: torch.Tensor | None = None,
     full: int = 1,
-) -> Callable[[torch.Tensor], torch.Tensor]:
+) -> Prior:
     """Whitened residuals (of world-to-camera poses) that keep each step between
     consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
     direction (unit vectors within `direction` for a step of the median length, in
@@ -464,12 +493,14 @@ def odometry_prior(
             parts.append((log_ratios(moved.ravel()) - ratios) * ratio_weight)
         return torch.cat(parts)
 
-    return residuals
+    steps = torch.arange(len(size))
+    first = torch.cat([steps.repeat_interleave(3), steps.repeat_interleave(3)])
+    if length is not None:
+        first = torch.cat([first, steps[:-1]])
+    return Prior(residuals, first, 3 if length is not None else 2)
 
 
-def prior_for(
-    T_wc: torch.Tensor, obs: Observations, cfg: BundleConfig
-) -> Callable[[torch.Tensor], torch.Tensor]:
+def prior_for(T_wc: torch.Tensor, obs: Observations, cfg: BundleConfig) -> Prior:
     """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`."""
     if cfg.linked == 0:
         return odometry_prior(T_wc, cfg.turn_deg, cfg.direction)
@@ -505,7 +536,7 @@ def adjust(
     obs: Observations,
     outlier: float,
     iters: int,
-    prior: Callable[[torch.Tensor], torch.Tensor] | None,
+    prior: Prior | None,
 ) -> Adjusted:
     """Poses `T_wc` (float64, path order, the first two held) adjusted on `obs`: outliers
     judged at the poses themselves, loosely first (3 `outlier`) and at `outlier` after

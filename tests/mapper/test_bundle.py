@@ -89,6 +89,24 @@ def test_odometry_prior_frees_the_step_length_and_holds_its_direction():
     assert float(prior(pose.invert(slid)).abs().max()) > 1.0
 
 
+@pytest.mark.parametrize("length", [None, 0.05])
+def test_the_priors_jacobian_by_colours_is_autograds(length):
+    T_wc, _, _ = _scene(cameras=9)
+    prior = odometry_prior(T_wc, 0.2, 0.02, length, torch.tensor([0, 5, 20, 0, 0, 9, 30, 1]), 10)
+    T_cw = _perturbed(T_wc, 0.05)  # away from the prior's zero, where its Jacobian is plain
+
+    def moved(step):
+        T = T_cw.clone()
+        T[2:] = pose.exp_se3(step.reshape(7, 6)) @ T_cw[2:]
+        return prior(T)
+
+    expected = torch.autograd.functional.jacobian(moved, torch.zeros(42, dtype=torch.float64))
+    r, J = prior.jacobian(T_cw, 2)
+    assert torch.allclose(r, prior(T_cw))
+    assert float(expected.abs().max()) > 1.0
+    assert torch.allclose(J, expected, atol=1e-9)
+
+
 def test_the_odometry_prior_places_a_pose_no_feature_sees():
     T_wc, X, obs = _scene()
     blind = obs.k != 5
