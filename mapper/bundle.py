@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
-from torch.autograd import forward_ad
 
 from dimslam.common.geometry import pose
 from dimslam.common.options import option
@@ -41,6 +40,8 @@ RATIO = 0.8
 """Lowe's ratio test: a match is kept when its distance is under this share of the second's."""
 SCALE = 1.2
 """ORB's pyramid scale factor: a feature's pixel error grows with its level."""
+STEP = 1e-6
+"""The increment of the prior's central differences (radians and map units, float64)."""
 
 
 @dataclass(frozen=True)
@@ -425,8 +426,8 @@ class Prior:
     def jacobian(self, T_cw: torch.Tensor, fixed: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The residuals at `T_cw` and their Jacobian with respect to left increments
         (v, w) of the poses after the first `fixed`: poses `reach` apart share no residual,
-        so one forward-mode pass per colour (index mod `reach`) and coordinate gives every
-        pose of that colour's columns at once."""
+        so one central difference per colour (index mod `reach`) and coordinate gives every
+        pose of that colour's columns at once (float64: good to about 1e-9)."""
         n = len(T_cw)
         index = torch.arange(n)
         r = self(T_cw)
@@ -438,9 +439,9 @@ class Prior:
             for d in range(6):
                 direction = torch.zeros(n, 6, dtype=T_cw.dtype)
                 direction[(index % self.reach == colour) & (index >= fixed), d] = 1
-                with forward_ad.dual_level():
-                    s = forward_ad.make_dual(torch.zeros(n, 6, dtype=T_cw.dtype), direction)
-                    out = forward_ad.unpack_dual(self(pose.exp_se3(s) @ T_cw)).tangent
+                ahead = self(pose.exp_se3(STEP * direction) @ T_cw)
+                behind = self(pose.exp_se3(-STEP * direction) @ T_cw)
+                out = (ahead - behind) / (2 * STEP)
                 J[rows[valid], (owner[valid] - fixed) * 6 + d] = out[valid]
         return r, J
 
