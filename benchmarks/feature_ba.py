@@ -19,7 +19,9 @@ run's frame by Sim(3)), with the first two keyframes held (they fix the gauge an
   where it ends.
 
 The *blind* start is what the mapper does (`--bundle.enabled true`): from the run, with the
-outliers judged at its own poses (`mapper.bundle.adjust`).
+outliers judged at its own poses (`mapper.bundle.adjust`). The points and observations on
+the first line are those the truth keeps; the blind start's own (the figures of the
+mapper's log line) are printed after it.
 
 `--odometry DEG DIR` adds the run's own steps between consecutive keyframes as a prior,
 without their lengths (each turn within DEG degrees, each direction within DIR): the
@@ -235,13 +237,16 @@ def main() -> None:
         if name == "blind":
             result = adjust(T_wc, K, unjudged, args.outlier, args.iters, prior)
             T_ba, cost, held = result.T_wc, result.cost, "-"
-            blind = T_ba
+            blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
             T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, 2, args.iters, prior=prior)
             T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
         before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
         print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
+    if blind is not None:
+        # The figures of the mapper's log line: the points above are those the truth keeps.
+        print(f"blind: the adjustment kept {kept} (outliers judged at the run's poses)")
     path = args.run / "trajectory.txt"
     if blind is not None and path.exists():
         frames = read_tum(path)
