@@ -712,6 +712,13 @@ def main() -> None:
         help="basin: settings of the extra mapping rounds only",
     )
     parser.add_argument("--out", type=Path, help="mesh: folder for the meshes and trajectory")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="CPU threads (default 1: as benchmarks/table.py runs `dimslam run`, so that a "
+        "whole run here is that run)",
+    )
     parser.add_argument("--until", type=int, help="map-oracle: track only frames before this")
     parser.add_argument(
         "--map-cache",
@@ -730,7 +737,10 @@ def main() -> None:
     args = parser.parse_args()
     # An unknown key or a wrong type: refused before anything runs.
     overrides_or_exit(parser, PRESETS[args.preset], {**dict(args.set), **dict(args.then)})
+    if args.threads < 1:
+        parser.error(f"--threads must be >= 1, got {args.threads}")
     logging.basicConfig(level=logging.WARNING)
+    torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     COMMANDS[args.command](args)
 

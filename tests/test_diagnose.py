@@ -61,3 +61,23 @@ def test_basin_finds_the_warping_cost_lowest_near_the_true_depth(
         # Patches warped at their true depth from true poses match best (the scene is exact).
         assert 0.9 <= min(costs, key=costs.get) <= 1.1, row
     assert "mapping rounds of frames" in out and "after 2:" in out, out
+
+
+def test_it_runs_on_the_threads_asked_and_refuses_none(diagnose, monkeypatch, capsys):
+    """One thread by default, as benchmarks/table.py runs `dimslam run`, so that a whole run
+    here is that run (threads change the sums' order, and a run's path with it)."""
+    import torch
+
+    monkeypatch.setattr("sys.argv", ["diagnose.py", "run", "none", "--threads", "0"])
+    with pytest.raises(SystemExit):
+        diagnose.main()
+    assert "--threads must be >= 1" in capsys.readouterr().err
+    threads = torch.get_num_threads()
+    try:
+        called = []
+        monkeypatch.setitem(diagnose.COMMANDS, "run", called.append)
+        monkeypatch.setattr("sys.argv", ["diagnose.py", "run", "none"])
+        diagnose.main()
+        assert called and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
