@@ -23,7 +23,8 @@ Each half is checked against ground truth before blaming the whole:
 SEQ is a TUM-layout sequence with `depth.txt` (exact depth: `dimslam synth` output or
 ../shared/data/room0). Settings: `--preset` plus `section.field=value` overrides. Ground truth
 is used here only to measure; nothing of it reaches the system under test except where a
-command says so (the GT poses of `map-oracle` and `mapper`).
+command says so (the GT poses of `map-oracle` and `mapper`). Runs use `--threads` (default 1,
+as `benchmarks/table.py` runs `dimslam run`), so a whole run here is the table's run.
 """
 
 from __future__ import annotations

@@ -95,7 +95,7 @@ PRESETS: dict[str, SlamConfig] = {
             # Every keyframe refined at the end by its ORB tracks, the tracked steps' turns
             # and directions as a prior: every frame's ATE, means over session 30's runs,
             # room0 2.41 -> 1.51, room3 17.93 -> 3.70, room5 11.07 -> 9.60, 7-Scenes 4.16 ->
-            # 4.13 (docs/results.md, "The bundle adjustment over every frame").
+            # 3.84 (docs/results.md, "The bundle adjustment over every frame" and session 34).
             bundle=BundleConfig(enabled=True),
             width=320,
         ),
