@@ -2,6 +2,7 @@
 decisions kept; what the mapper alone makes of a sequence."""
 
 import pytest
+import torch
 from repo import benchmark
 
 from dimslam.common.io.synth import write_sequence
@@ -66,8 +67,6 @@ def test_basin_finds_the_warping_cost_lowest_near_the_true_depth(
 def test_it_runs_on_the_threads_asked_and_refuses_none(diagnose, monkeypatch, capsys):
     """One thread by default, as benchmarks/table.py runs `dimslam run`, so that a whole run
     here is that run (threads change the sums' order, and a run's path with it)."""
-    import torch
-
     monkeypatch.setattr("sys.argv", ["diagnose.py", "run", "none", "--threads", "0"])
     with pytest.raises(SystemExit):
         diagnose.main()
