@@ -15,6 +15,8 @@ Each half is checked against ground truth before blaming the whole:
     python benchmarks/diagnose.py mesh SEQ --out D # after the run, the mesh as the mapper makes
                                                    # it and from the true depth at the estimated
                                                    # keyframe poses: what the poses allow
+    python benchmarks/diagnose.py mesh-truth SEQ --out D  # the true depth fused at the true
+                                                   # poses: what fusion and protocol allow
     python benchmarks/diagnose.py basin SEQ        # run at true poses; the warping cost of the
                                                    # pixels mapped too near, at their true depth
                                                    # times 0.4-1.5; then --rounds more mapping
@@ -664,6 +666,50 @@ def cmd_mesh(args) -> None:
         print(f"{name}:\n{format_metrics(metrics)}", flush=True)
 
 
+def cmd_mesh_truth(args) -> None:
+    """The mesh fused from the true depth at the true poses (`mapper.mesh_views` of them,
+    evenly spread, at `mapper.mesh_width` pixels, `mapper.mesh_voxel`), evaluated as a run's
+    mesh is: what the fusion and the evaluation protocol allow with nothing estimated."""
+    from dimslam.common.eval.report import evaluate_files, format_metrics
+    from dimslam.common.io.trajectory import write_tum
+    from dimslam.common.map import mesh as meshing
+
+    if args.out is None:
+        raise SystemExit("error: mesh-truth needs --out DIR (mesh and trajectory go there)")
+    cfg, camera, frames = load(args)
+    truth = _ground_truth(frames)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_tum(args.out / "trajectory.txt", truth)
+    poses = torch.from_numpy(truth.poses).float()
+    pick = torch.linspace(0, len(frames) - 1, min(len(frames), cfg.mapper.mesh_views))
+    pick = pick.round().long()
+    small = camera.resized(min(camera.width, cfg.mapper.mesh_width))
+    depths = torch.from_numpy(np.stack(gt_depths(Path(args.seq), [frames[i] for i in pick], small)))
+    voxel, far = cfg.mapper.mesh_voxel, cfg.render.far
+    occupancy = meshing.fused_occupancy(depths, poses[pick], small, truncation=3 * voxel)
+    centres = poses[:, :3, 3]
+    bound = torch.stack([centres.min(0).values - far, centres.max(0).values + far])
+
+    def grey(p: torch.Tensor) -> torch.Tensor:
+        return torch.full((len(p), 3), 0.5)
+
+    with torch.no_grad():
+        try:
+            mesh = meshing.extract_mesh(
+                occupancy, grey, bound, voxel, poses, camera, far, unknown_nan=True
+            )
+        except meshing.GridTooLarge as e:
+            print(f"{e}; meshing at {e.suggest:.3g} instead")
+            mesh = meshing.extract_mesh(
+                occupancy, grey, bound, e.suggest, poses, camera, far, unknown_nan=True
+            )
+    meshing.write_mesh(mesh, args.out / "mesh_truth.ply")
+    metrics = evaluate_files(
+        args.out / "trajectory.txt", args.seq, mesh=args.out / "mesh_truth.ply"
+    )
+    print(f"{len(pick)} views, {small.width} px, voxel {voxel}:\n{format_metrics(metrics)}")
+
+
 COMMANDS = {
     "map-oracle": cmd_map_oracle,
     "single": cmd_single,
@@ -673,6 +719,7 @@ COMMANDS = {
     "run": cmd_run,
     "keyframes": cmd_keyframes,
     "mesh": cmd_mesh,
+    "mesh-truth": cmd_mesh_truth,
     "basin": cmd_basin,
 }
 
@@ -712,7 +759,9 @@ def main() -> None:
         metavar="SECTION.FIELD=VALUE",
         help="basin: settings of the extra mapping rounds only",
     )
-    parser.add_argument("--out", type=Path, help="mesh: folder for the meshes and trajectory")
+    parser.add_argument(
+        "--out", type=Path, help="mesh, mesh-truth: folder for the meshes and trajectory"
+    )
     parser.add_argument(
         "--threads",
         type=int,
