@@ -694,15 +694,9 @@ def cmd_mesh_truth(args) -> None:
         return torch.full((len(p), 3), 0.5)
 
     with torch.no_grad():
-        try:
-            mesh = meshing.extract_mesh(
-                occupancy, grey, bound, voxel, poses, camera, far, unknown_nan=True
-            )
-        except meshing.GridTooLarge as e:
-            print(f"{e}; meshing at {e.suggest:.3g} instead")
-            mesh = meshing.extract_mesh(
-                occupancy, grey, bound, e.suggest, poses, camera, far, unknown_nan=True
-            )
+        mesh = meshing.extract_mesh_in_budget(
+            occupancy, grey, bound, voxel, poses, camera, far, unknown_nan=True
+        )
     meshing.write_mesh(mesh, args.out / "mesh_truth.ply")
     metrics = evaluate_files(
         args.out / "trajectory.txt", args.seq, mesh=args.out / "mesh_truth.ply"

@@ -630,24 +630,16 @@ class Mapper:
         def color(p: torch.Tensor) -> torch.Tensor:
             return field(p.to(field.bound.device)).rgb.cpu()
 
-        def extract(voxel: float):
-            with torch.no_grad():
-                return meshing.extract_mesh(
-                    occupancy,
-                    color,
-                    field.bound.cpu(),
-                    voxel,
-                    poses.cpu(),
-                    self.camera,
-                    max_depth,
-                    progress=progress,
-                    unknown_nan=True,
-                    coarse=self.cfg.mesh_coarse,
-                )
-
-        try:
-            return extract(self.cfg.mesh_voxel)
-        except meshing.GridTooLarge as e:
-            # The observed region is larger than the grid budget: a coarser mesh beats none.
-            log.warning("%s; meshing at %.3g instead", e, e.suggest)
-            return extract(e.suggest)
+        with torch.no_grad():
+            return meshing.extract_mesh_in_budget(
+                occupancy,
+                color,
+                field.bound.cpu(),
+                self.cfg.mesh_voxel,
+                poses.cpu(),
+                self.camera,
+                max_depth,
+                progress=progress,
+                unknown_nan=True,
+                coarse=self.cfg.mesh_coarse,
+            )

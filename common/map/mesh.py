@@ -251,6 +251,19 @@ def extract_mesh(
     return mesh
 
 
+def extract_mesh_in_budget(
+    occupancy_fn: FieldFn, color_fn: FieldFn, bound, voxel: float, *args, **kwargs
+) -> trimesh.Trimesh:
+    """`extract_mesh`, at the coarsest voxel the grid's budget allows where the observed
+    region needs more than `MAX_GRID_CELLS` cells at `voxel` (a coarser mesh beats none;
+    logged as a warning)."""
+    try:
+        return extract_mesh(occupancy_fn, color_fn, bound, voxel, *args, **kwargs)
+    except GridTooLarge as e:
+        log.warning("%s; meshing at %.3g instead", e, e.suggest)
+        return extract_mesh(occupancy_fn, color_fn, bound, e.suggest, *args, **kwargs)
+
+
 def write_mesh(mesh: trimesh.Trimesh, path: str | Path) -> None:
     """Write `mesh` as binary PLY with its uint8 vertex colours; creates the parent folder.
 

@@ -11,6 +11,7 @@ from dimslam.common.eval.evaluation import Sim3
 from dimslam.common.eval.mesh_metrics import evaluate_mesh
 from dimslam.common.geometry.camera import Camera, frustum_mask
 from dimslam.common.io.synth import SynthScene, default_camera
+from dimslam.common.map import mesh as meshing
 from dimslam.common.map.mesh import EmptyMeshError, extract_mesh, fused_occupancy, write_mesh
 
 CAMERA = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
@@ -168,6 +169,16 @@ def test_absurd_grid_and_blind_cameras_raise_clear_errors():
     away = look_at(np.array([5.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]))[None]
     with pytest.raises(DimslamError, match="see no part of the bound"):
         extract_mesh(ball, position_colour, BOUND, VOXEL, away, CAMERA, 4.0)
+
+
+def test_a_grid_over_the_budget_is_meshed_coarser_in_budget(monkeypatch, caplog):
+    """`extract_mesh_in_budget` meshes at the voxel the budget allows, and says so."""
+    monkeypatch.setattr(meshing, "MAX_GRID_CELLS", 20**3)  # 40^3 cells at VOXEL
+    with pytest.raises(DimslamError, match="use a voxel of at least"):
+        extract_mesh(ball, position_colour, BOUND, VOXEL, AROUND, CAMERA, 4.0)
+    mesh = meshing.extract_mesh_in_budget(ball, position_colour, BOUND, VOXEL, AROUND, CAMERA, 4.0)
+    assert "meshing at" in caplog.text
+    assert np.abs(np.linalg.norm(mesh.vertices - CENTRE, axis=1) - RADIUS).max() < 2 * VOXEL
 
 
 def test_progress_and_ply_round_trip(tmp_path):
