@@ -622,17 +622,28 @@ def cmd_keyframes(args) -> None:
 
 
 def cmd_mesh(args) -> None:
-    """The whole system over `--frames`, then two meshes, each evaluated as a run's is (the
-    trajectory's Sim(3), culled to the true frustums): the mapper's (the depth the map
-    renders, fused) and one fused from the true depth at the keyframes' estimated poses, in
-    map units (divided by the alignment's scale). The second is what a perfect depth would
-    give at these poses: the part of the mesh error that is the poses'."""
-    from dimslam.common.eval.report import evaluate_files, format_metrics
+    """The whole system over `--frames`, then meshes, each evaluated as a run's is (the
+    trajectory's Sim(3), culled to the true frustums):
+
+    - `mesh_map.ply`, the mapper's: the depth the map renders at the mesh views, fused;
+    - `mesh_map_view_scale.ply`: the same depth with each view's scale made the truth's
+      (times its median ratio to the true depth in map units, the true depth divided by the
+      alignment's scale): what is left of the mapper's error when only the shape of each
+      view's depth is the map's;
+    - `mesh_true_depth.ply`: the true depth at the keyframes' estimated poses, in map units:
+      what a perfect depth would give at these poses, the part of the error that is the
+      poses';
+    - with `--refit N[,N...]`, `mesh_refit_N.ply`: the mapper's mesh after N more map
+      iterations (poses held) over windows about every keyframe in turn, as the end of a run
+      refits the map after its bundle adjustment: whether a map fitted longer to the final
+      poses meshes better."""
     from dimslam.common.io.trajectory import write_tum
-    from dimslam.common.map.mesh import write_mesh
 
     if args.out is None:
         raise SystemExit("error: mesh needs --out DIR (meshes and trajectory go there)")
+    refits = sorted({int(n) for n in args.refit.split(",")}) if args.refit else []
+    if any(n <= 0 for n in refits):
+        raise SystemExit(f"error: --refit takes positive iteration counts, got {args.refit}")
     cfg, camera, frames = load(args)
     slam = Slam(cfg, camera, torch.device("cpu"))
     for _ in _feed(slam, frames):
@@ -647,30 +658,58 @@ def cmd_mesh(args) -> None:
     alignment = evaluate_trajectory(traj, gt).alignment
     mapper = slam.back.mapper
     poses = torch.from_numpy(traj.poses).float()
-    small = camera.resized(min(camera.width, cfg.mapper.mesh_width))
+    far = cfg.render.far
+    depths, picked, small = mapper.mesh_depths(poses)
+    views = poses[picked]
+    truth = np.stack(gt_depths(Path(args.seq), [frames[i] for i in picked], small))
+    truth = torch.from_numpy(truth) / alignment.s
+    print("mesh view | map depth / true depth (median, quartiles)")
+    scaled = depths.clone()
+    for v, (d, t) in enumerate(zip(depths, truth, strict=True)):
+        ok = (t > 0) & (d > 0)
+        ratio = (d[ok] / t[ok]).double()
+        q1, q2, q3 = (float(x) for x in ratio.quantile(torch.tensor([0.25, 0.5, 0.75]).double()))
+        print(f"{int(picked[v]):9d} | {q2:.3f} ({q1:.3f}-{q3:.3f})")
+        scaled[v] = d / q2
     keyframes = slam.keyframes
-    true = gt_depths(Path(args.seq), [frames[kf.index] for kf in keyframes], small)
+    kf_small = camera.resized(min(camera.width, cfg.mapper.mesh_width))
+    true_kf = gt_depths(Path(args.seq), [frames[kf.index] for kf in keyframes], kf_small)
     meshes = {
-        "mesh_map.ply": mapper.extract_mesh(poses, cfg.render.far),
-        "mesh_true_depth.ply": mapper.fuse_mesh(
-            torch.from_numpy(np.stack(true)) / alignment.s,
+        "mesh_map.ply": lambda: mapper.fuse_mesh(depths, views, small, poses, far),
+        "mesh_map_view_scale.ply": lambda: mapper.fuse_mesh(scaled, views, small, poses, far),
+        "mesh_true_depth.ply": lambda: mapper.fuse_mesh(
+            torch.from_numpy(np.stack(true_kf)) / alignment.s,
             torch.stack([kf.T_wc.detach().cpu() for kf in keyframes]),
-            small,
+            kf_small,
             poses,
-            cfg.render.far,
+            far,
         ),
     }
-    for name, mesh in meshes.items():
-        write_mesh(mesh, args.out / name)
-        metrics = evaluate_files(args.out / "trajectory.txt", args.seq, mesh=args.out / name)
-        print(f"{name}:\n{format_metrics(metrics)}", flush=True)
+    for name, make in meshes.items():
+        _write_evaluated(make(), args, name)
+    done = 0
+    for n in refits:
+        started = time.perf_counter()
+        mapper.post_optimize(keyframes, n - done, anchors=keyframes)
+        done = n
+        print(f"refit to {n} iterations: {time.perf_counter() - started:.0f} s")
+        _write_evaluated(mapper.extract_mesh(poses, far), args, f"mesh_refit_{n}.ply")
+
+
+def _write_evaluated(mesh, args, name: str) -> None:
+    """Write `mesh` as `args.out / name` and print its evaluation against `args.seq`."""
+    from dimslam.common.eval.report import evaluate_files, format_metrics
+    from dimslam.common.map.mesh import write_mesh
+
+    write_mesh(mesh, args.out / name)
+    metrics = evaluate_files(args.out / "trajectory.txt", args.seq, mesh=args.out / name)
+    print(f"{name}:\n{format_metrics(metrics)}", flush=True)
 
 
 def cmd_mesh_truth(args) -> None:
     """The mesh fused from the true depth at the true poses (`mapper.mesh_views` of them,
     evenly spread, at `mapper.mesh_width` pixels, `mapper.mesh_voxel`), evaluated as a run's
     mesh is: what the fusion and the evaluation protocol allow with nothing estimated."""
-    from dimslam.common.eval.report import evaluate_files, format_metrics
     from dimslam.common.io.trajectory import write_tum
     from dimslam.common.map import mesh as meshing
 
@@ -697,11 +736,8 @@ def cmd_mesh_truth(args) -> None:
         mesh = meshing.extract_mesh_in_budget(
             occupancy, grey, bound, voxel, poses, camera, far, unknown_nan=True
         )
-    meshing.write_mesh(mesh, args.out / "mesh_truth.ply")
-    metrics = evaluate_files(
-        args.out / "trajectory.txt", args.seq, mesh=args.out / "mesh_truth.ply"
-    )
-    print(f"{len(pick)} views, {small.width} px, voxel {voxel}:\n{format_metrics(metrics)}")
+    print(f"{len(pick)} views, {small.width} px, voxel {voxel}:")
+    _write_evaluated(mesh, args, "mesh_truth.ply")
 
 
 COMMANDS = {
@@ -755,6 +791,11 @@ def main() -> None:
     )
     parser.add_argument(
         "--out", type=Path, help="mesh, mesh-truth: folder for the meshes and trajectory"
+    )
+    parser.add_argument(
+        "--refit",
+        help="mesh: also mesh after this many more map iterations at the final poses "
+        "(comma-separated, e.g. 200,600)",
     )
     parser.add_argument(
         "--threads",

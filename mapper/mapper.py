@@ -600,15 +600,21 @@ class Mapper:
         several samples of moderate occupancy), so the surface is the 0.5 level of the
         occupancy fused from the depth the map renders at up to `mesh_views` of `poses`.
         """
-        views = poses[
-            torch.linspace(0, len(poses) - 1, min(len(poses), self.cfg.mesh_views)).round().long()
-        ]
+        depths, pick, small = self.mesh_depths(poses)
+        return self.fuse_mesh(depths, poses[pick], small, poses, max_depth, progress)
+
+    def mesh_depths(self, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, Camera]:
+        """The depth the map renders for the mesh: `(V, h, w)` at `mesh_views` of `poses`
+        (evenly spread), the indices of those views in `poses`, and their camera
+        (`mesh_width`)."""
+        pick = torch.linspace(0, len(poses) - 1, min(len(poses), self.cfg.mesh_views))
+        pick = pick.round().long()
         small = self.camera.resized(min(self.camera.width, self.cfg.mesh_width))
         with torch.no_grad():
             depths = torch.stack(
-                [render_image(self.field, small, T, self.render_cfg)[0].cpu() for T in views]
+                [render_image(self.field, small, T, self.render_cfg)[0].cpu() for T in poses[pick]]
             )
-        return self.fuse_mesh(depths, views, small, poses, max_depth, progress)
+        return depths, pick, small
 
     def fuse_mesh(
         self,
