@@ -12,9 +12,12 @@ Each half is checked against ground truth before blaming the whole:
                                                    # --gt-poses: frames at their true poses)
     python benchmarks/diagnose.py keyframes SEQ    # after the run, each keyframe's depth scale:
                                                    # the map's and its plane sweep's
-    python benchmarks/diagnose.py mesh SEQ --out D # after the run, the mesh as the mapper makes
-                                                   # it and from the true depth at the estimated
-                                                   # keyframe poses: what the poses allow
+    python benchmarks/diagnose.py mesh SEQ --out D # after the run, each mesh view's depth scale,
+                                                   # the mesh as the mapper makes it, with each
+                                                   # view's depth at the truth's scale, and from
+                                                   # the true depth at the estimated keyframe
+                                                   # poses: what the poses allow (--refit N: the
+                                                   # map fitted N more iterations, poses held)
     python benchmarks/diagnose.py mesh-truth SEQ --out D  # the true depth fused at the true
                                                    # poses: what fusion and protocol allow
     python benchmarks/diagnose.py basin SEQ        # run at true poses; the warping cost of the
