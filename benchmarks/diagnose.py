@@ -675,15 +675,14 @@ def cmd_mesh(args) -> None:
         print(f"{int(picked[v]):9d} | {q2:.3f} ({q1:.3f}-{q3:.3f})")
         scaled[v] = d / q2
     keyframes = slam.keyframes
-    kf_small = camera.resized(min(camera.width, cfg.mapper.mesh_width))
-    true_kf = gt_depths(Path(args.seq), [frames[kf.index] for kf in keyframes], kf_small)
+    true_kf = gt_depths(Path(args.seq), [frames[kf.index] for kf in keyframes], small)
     meshes = {
         "mesh_map.ply": lambda: mapper.fuse_mesh(depths, views, small, poses, far),
         "mesh_map_view_scale.ply": lambda: mapper.fuse_mesh(scaled, views, small, poses, far),
         "mesh_true_depth.ply": lambda: mapper.fuse_mesh(
             torch.from_numpy(np.stack(true_kf)) / alignment.s,
             torch.stack([kf.T_wc.detach().cpu() for kf in keyframes]),
-            kf_small,
+            small,
             poses,
             far,
         ),
