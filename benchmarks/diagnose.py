@@ -66,6 +66,7 @@ from dimslam.common.optim.window import (
 )
 from dimslam.common.options import apply_overrides, overrides_or_exit, setting
 from dimslam.common.slam import Slam
+from dimslam.mapper.mapper import MeshDepths
 
 
 def load(args):
@@ -628,8 +629,10 @@ def cmd_mesh(args) -> None:
     """The whole system over `--frames`, then meshes, each evaluated as a run's is (the
     trajectory's Sim(3), culled to the true frustums):
 
-    - `mesh_map.ply`, the mapper's: the depth the map renders at the mesh views, fused;
-    - `mesh_map_view_scale.ply`: the same depth with each view's scale made the truth's
+    - `mesh_map.ply`, the mapper's (`Mapper.mesh_depths`: with `mapper.mesh_sweeps`, the
+      mesh views' plane sweeps and the map's depth where they agree with it);
+    - `mesh_map_depth.ply`: the depth the map renders at the mesh views alone, fused;
+    - `mesh_map_view_scale.ply`: that depth with each view's scale made the truth's
       (times its median ratio to the true depth in map units, the true depth divided by the
       alignment's scale): what is left of the mapper's error when only the shape of each
       view's depth is the map's;
@@ -662,30 +665,41 @@ def cmd_mesh(args) -> None:
     mapper = slam.back.mapper
     poses = torch.from_numpy(traj.poses).float()
     far = cfg.render.far
-    depths, picked, small = mapper.mesh_depths(poses)
-    views = poses[picked]
+    keyframes = slam.keyframes
+    mesh = mapper.mesh_depths(poses, keyframes)
+    small, views, picked = mesh.camera, mesh.T_wc, mesh.index
     truth = np.stack(gt_depths(Path(args.seq), [frames[i] for i in picked], small))
     truth = torch.from_numpy(truth) / alignment.s
-    print("mesh view | map depth / true depth (median, quartiles)")
-    scaled = depths.clone()
-    for v, (d, t) in enumerate(zip(depths, truth, strict=True)):
-        ok = (t > 0) & (d > 0)
-        ratio = (d[ok] / t[ok]).double()
-        q1, q2, q3 = (float(x) for x in ratio.quantile(torch.tensor([0.25, 0.5, 0.75]).double()))
-        print(f"{int(picked[v]):9d} | {q2:.3f} ({q1:.3f}-{q3:.3f})")
+    swept = mesh.depths.where(mesh.weights == 1, math.nan) if cfg.mapper.mesh_sweeps else None
+    print("mesh view | map depth / true depth (median, quartiles) | plane sweep's (kept)")
+    rendered = mapper.render_depths(views, small)  # everywhere (the mesh's skips some pixels)
+    scaled = rendered.clone()
+    for v, (d, t) in enumerate(zip(rendered, truth, strict=True)):
+        q1, q2, q3 = _quartiles(d, t)
+        sweep = "-"
+        if swept is not None:
+            s1, s2, s3 = _quartiles(swept[v], t)
+            sweep = (
+                f"{s2:.3f} ({s1:.3f}-{s3:.3f}, {100 * swept[v].isfinite().float().mean():.0f} %)"
+            )
+        print(f"{int(picked[v]):9d} | {q2:.3f} ({q1:.3f}-{q3:.3f}) | {sweep}")
         scaled[v] = d / q2
-    keyframes = slam.keyframes
     true_kf = gt_depths(Path(args.seq), [frames[kf.index] for kf in keyframes], small)
+    kf_T = torch.stack([kf.T_wc.detach().cpu() for kf in keyframes])
+    true_kf = torch.from_numpy(np.stack(true_kf)) / alignment.s
+
+    def alone(depths, T_wc, index) -> MeshDepths:
+        return MeshDepths(depths, torch.ones_like(depths), T_wc, small, depths, index)
+
+    kf_index = torch.tensor([kf.index for kf in keyframes])
+
     meshes = {
-        "mesh_map.ply": lambda: mapper.fuse_mesh(depths, views, small, poses, far),
-        "mesh_map_view_scale.ply": lambda: mapper.fuse_mesh(scaled, views, small, poses, far),
-        "mesh_true_depth.ply": lambda: mapper.fuse_mesh(
-            torch.from_numpy(np.stack(true_kf)) / alignment.s,
-            torch.stack([kf.T_wc.detach().cpu() for kf in keyframes]),
-            small,
-            poses,
-            far,
+        "mesh_map.ply": lambda: mapper.fuse_mesh(mesh, poses, far),
+        "mesh_map_depth.ply": lambda: mapper.fuse_mesh(alone(rendered, views, picked), poses, far),
+        "mesh_map_view_scale.ply": lambda: mapper.fuse_mesh(
+            alone(scaled, views, picked), poses, far
         ),
+        "mesh_true_depth.ply": lambda: mapper.fuse_mesh(alone(true_kf, kf_T, kf_index), poses, far),
     }
     for name, make in meshes.items():
         _write_evaluated(make(), args, name)
@@ -695,7 +709,17 @@ def cmd_mesh(args) -> None:
         mapper.post_optimize(keyframes, n - done, anchors=keyframes)
         done = n
         print(f"refit to {n} iterations: {time.perf_counter() - started:.0f} s")
-        _write_evaluated(mapper.extract_mesh(poses, far), args, f"mesh_refit_{n}.ply")
+        _write_evaluated(mapper.extract_mesh(poses, far, keyframes), args, f"mesh_refit_{n}.ply")
+
+
+def _quartiles(depth: torch.Tensor, truth: torch.Tensor) -> tuple[float, float, float]:
+    """Quartiles of `depth / truth` where both are known (NaN where nothing is)."""
+    ok = (truth > 0) & (depth > 0)  # NaN compares False
+    if not ok.any():
+        return math.nan, math.nan, math.nan
+    ratio = (depth[ok] / truth[ok]).double()
+    q1, q2, q3 = ratio.quantile(torch.tensor([0.25, 0.5, 0.75]).double()).tolist()
+    return q1, q2, q3
 
 
 def _write_evaluated(mesh, args, name: str) -> None:

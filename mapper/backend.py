@@ -414,7 +414,7 @@ class BackEnd:
         if not self.initialized:
             raise EmptyMeshError("no map yet")
         poses = torch.stack([f.T_wc for f in self.frames])
-        return self.mapper.extract_mesh(poses, self.cfg.render.far)
+        return self.mapper.extract_mesh(poses, self.cfg.render.far, self.keyframes)
 
     def write_mesh(self, out_dir: Path) -> Path | None:
         """Write `out_dir/mesh.ply` and its pictures, `mesh_views.png`; the PLY's path, or

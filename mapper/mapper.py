@@ -27,7 +27,7 @@ import torch
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map import mesh as meshing
 from dimslam.common.map.field import MapConfig, make_field
-from dimslam.common.map.render import RenderConfig, camera_rays, render_image, render_pixels
+from dimslam.common.map.render import RenderConfig, camera_rays, render_pixels
 from dimslam.common.optim.objective import LossConfig, WindowLoss, window_objective
 from dimslam.common.optim.window import (
     FrameState,
@@ -40,7 +40,13 @@ from dimslam.common.optim.window import (
 )
 from dimslam.common.options import option
 from dimslam.mapper.bootstrap import bootstrap
-from dimslam.mapper.stereo import SweepDepth, plane_sweep, sample_depths
+from dimslam.mapper.stereo import (
+    SweepDepth,
+    agreeing_depths,
+    consistent_depths,
+    plane_sweep,
+    sample_depths,
+)
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +62,21 @@ STEREO_FRAMES = 15
 STEREO_ANGLE = 20.0
 STEREO_NEAR = 0.2
 """The plane sweep searches depths from this share of the gauge depth to `RenderConfig.far`."""
+MESH_PLANES = 48
+"""Inverse depths each mesh view's plane sweep searches."""
+RENDER_CHUNK = 4096
+"""Rays rendered at once for the mesh's depth (bounds the memory)."""
+MESH_MAP_WEIGHT = 0.3
+"""Weight of the map's rendered depth in the mesh's fusion, against a plane sweep's 1: where a
+view's sweep saw the surface, the map's depth is not used; where it did not, the map's fills,
+and the sweeps of other views that saw that surface win over it."""
+MESH_GATE = 0.1
+"""The map's depth is left out of the mesh where the sweeps around say it is off by more than
+this share (`agreeing_depths`)."""
+MESH_GATE_SIGMA = 0.1
+"""... over a Gaussian of this share of the mesh's width,"""
+MESH_GATE_SUPPORT = 0.1
+"""... resting on at least this much of its weight."""
 SCALE_ITERS = 3
 """Map-only iterations (times `init_grow_iters`) that measure the depth of frame 0 a restart
 from tracked corners gives, before its poses are scaled to the gauge."""
@@ -156,6 +177,12 @@ class MapperConfig:
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
     mesh_width: int = option(160, "Width of the depth images rendered for the mesh's fusion.")
+    mesh_sweeps: bool = option(
+        True,
+        "Fuse into the mesh each mesh view's plane sweep (keyframes, at their current poses), "
+        "kept where multi-view consistent, with the map's depth where the sweeps agree with it "
+        "(false: the map's depth alone).",
+    )
     mesh_coarse: bool = option(
         True,
         "Fuse the depth on every other grid point first, at full resolution only near the "
@@ -165,6 +192,27 @@ class MapperConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.pose_gate <= 1:
             raise ValueError(f"mapper.pose_gate must be in [0, 1], got {self.pose_gate}")
+
+
+@dataclass(frozen=True)
+class MeshDepths:
+    """The depth maps a mesh is fused from (`Mapper.mesh_depths`).
+
+    Attributes:
+        depths: `(V, h, w)` z-depth in map units at `camera`'s size, NaN where unknown.
+        weights: `(V, h, w)` each pixel's weight in the fusion.
+        T_wc: `(V, 4, 4)` the poses they are seen from.
+        camera: their camera.
+        rendered: `(V, h, w)` the depth the map renders there (NaN where it was not needed).
+        index: `(V,)` the frame index of each view.
+    """
+
+    depths: torch.Tensor
+    weights: torch.Tensor
+    T_wc: torch.Tensor
+    camera: Camera
+    rendered: torch.Tensor
+    index: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -202,6 +250,8 @@ class Mapper:
         self.margin = max(loss_cfg.patch_sizes) // 2
         self._map_optimizer: torch.optim.Optimizer | None = None
         self.sweeps: dict[int, SweepDepth] = {}  # keyframe index -> its multi-view depth
+        # keyframe index -> (its and its sources' poses, its plane sweep at them) for the mesh
+        self._mesh_sweeps: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def _adam(self, groups: list[dict]) -> torch.optim.Optimizer:
         """Adam over `groups`, following the grids when rays store new cells (sparse map)."""
@@ -593,44 +643,130 @@ class Mapper:
             remaining -= chunk
         return stats
 
-    def extract_mesh(self, poses: torch.Tensor, max_depth: float, progress=None):
+    def extract_mesh(
+        self,
+        poses: torch.Tensor,
+        max_depth: float,
+        keyframes: list[FrameState] | tuple = (),
+        progress=None,
+    ):
         """The map's surface, culled to the estimated frustums (see `common/map/mesh.py`).
 
         The learned occupancy of an RGB-only map stays below 0.5 (docs/status.md: rays end in
         several samples of moderate occupancy), so the surface is the 0.5 level of the
-        occupancy fused from the depth the map renders at up to `mesh_views` of `poses`.
+        occupancy fused from depth maps: see `mesh_depths`.
         """
-        depths, pick, small = self.mesh_depths(poses)
-        return self.fuse_mesh(depths, poses[pick], small, poses, max_depth, progress)
+        return self.fuse_mesh(self.mesh_depths(poses, keyframes), poses, max_depth, progress)
 
-    def mesh_depths(self, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, Camera]:
-        """The depth the map renders for the mesh: `(V, h, w)` at `mesh_views` of `poses`
-        (evenly spread), the indices of those views in `poses`, and their camera
-        (`mesh_width`)."""
+    def mesh_depths(
+        self, poses: torch.Tensor, keyframes: list[FrameState] | tuple = ()
+    ) -> MeshDepths:
+        """The depth maps fused into the mesh (`mesh_width` pixels wide).
+
+        With `mesh_sweeps` and two keyframes or more (their images held): at up to
+        `mesh_views` of `keyframes` (evenly spread), each one's plane sweep against its
+        neighbouring keyframes at their current poses, kept where multi-view consistent;
+        elsewhere the depth the map renders there, at `MESH_MAP_WEIGHT` and left out where
+        the sweeps around show it off (`agreeing_depths`). The map was fitted to the poses of its
+        rounds; the sweeps follow the poses as they are now. Otherwise the map's depth at up
+        to `mesh_views` of `poses` (evenly spread)."""
+        small = self.camera.resized(min(self.camera.width, self.cfg.mesh_width))
+        held = [kf for kf in keyframes if kf.rgb is not None]
+        if self.cfg.mesh_sweeps and len(held) >= 2:
+            pick = torch.linspace(0, len(held) - 1, min(len(held), self.cfg.mesh_views))
+            views = [held[int(i)] for i in pick.round().long().unique()]
+            T_wc = torch.stack([f.T_wc.detach().cpu() for f in views])
+            swept = [self._mesh_sweep(f, held, small) for f in views]
+            sweeps = consistent_depths(torch.stack(swept), T_wc, small)
+            # The map's depth where no sweep is, and on every other row and column of the
+            # sweeps' pixels for `agreeing_depths` (a third less rendering, same mesh).
+            found = torch.isfinite(sweeps)
+            sparse = torch.zeros_like(found)
+            sparse[:, ::2, ::2] = True
+            rendered = self.render_depths(T_wc, small, ~found | sparse)
+            sigma = MESH_GATE_SIGMA * small.width
+            kept = agreeing_depths(rendered, sweeps, MESH_GATE, sigma, MESH_GATE_SUPPORT)
+            return MeshDepths(
+                torch.where(found, sweeps, kept),
+                torch.where(found, 1.0, MESH_MAP_WEIGHT),
+                T_wc,
+                small,
+                rendered,
+                torch.tensor([f.index for f in views]),
+            )
         pick = torch.linspace(0, len(poses) - 1, min(len(poses), self.cfg.mesh_views))
         pick = pick.round().long()
-        small = self.camera.resized(min(self.camera.width, self.cfg.mesh_width))
-        with torch.no_grad():
-            depths = torch.stack(
-                [render_image(self.field, small, T, self.render_cfg)[0].cpu() for T in poses[pick]]
-            )
-        return depths, pick, small
+        T_wc = poses[pick].detach().cpu()
+        rendered = self.render_depths(T_wc, small)
+        return MeshDepths(rendered, torch.ones_like(rendered), T_wc, small, rendered, pick)
 
-    def fuse_mesh(
-        self,
-        depths: torch.Tensor,
-        views: torch.Tensor,
-        small: Camera,
-        poses: torch.Tensor,
-        max_depth: float,
-        progress=None,
-    ):
-        """The 0.5 level of the occupancy fused from `depths` (`(V, h, w)`, map units, at
-        `small`'s size) seen from `views` (`(V, 4, 4)`), culled to the frustums of `poses`,
-        coloured by the map."""
+    def render_depths(
+        self, T_wc: torch.Tensor, small: Camera, only: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """`(V, h, w)` depth the map renders at `small`'s size from poses `T_wc`, only at the
+        pixels `only` (`(V, h, w)` bool; NaN elsewhere) if given."""
+        device = self.field.bound.device
+        v, u = torch.meshgrid(
+            torch.arange(small.height, dtype=torch.float32),
+            torch.arange(small.width, dtype=torch.float32),
+            indexing="ij",
+        )
+        uv = torch.stack([u, v], -1).view(-1, 2)
+        out = torch.full((len(T_wc), small.height, small.width), math.nan)
+        with torch.no_grad():
+            for i, T in enumerate(T_wc):
+                wanted = slice(None) if only is None else only[i].view(-1)
+                at = uv[wanted]
+                depth = [
+                    render_pixels(
+                        self.field,
+                        small,
+                        at[k : k + RENDER_CHUNK].to(device),
+                        T.to(device),
+                        self.render_cfg,
+                        with_color=False,
+                    ).depth.cpu()
+                    for k in range(0, len(at), RENDER_CHUNK)
+                ]
+                if depth:
+                    out[i].view(-1)[wanted] = torch.cat(depth)
+        return out
+
+    def _mesh_sweep(self, f: FrameState, held: list[FrameState], small: Camera) -> torch.Tensor:
+        """Keyframe `f`'s plane sweep at `small`'s size against its neighbours among `held`
+        at their current poses (NaN where none is kept), computed again only when one of
+        those poses has changed since the last mesh."""
+        sources = self._stereo_sources(f, held)
+        if not sources:
+            return torch.full((small.height, small.width), math.nan)
+        key = torch.stack([g.T_wc.detach().cpu() for g in [f, *sources]])
+        cached = self._mesh_sweeps.get(f.index)
+        if cached is not None and cached[0].shape == key.shape and torch.equal(cached[0], key):
+            return cached[1]
+        sweep = plane_sweep(
+            f.rgb,
+            f.T_wc.detach(),
+            [(g.rgb, g.T_wc.detach()) for g in sources],
+            self.camera,
+            STEREO_NEAR * self.cfg.gauge_depth,
+            self.render_cfg.far,
+            planes=MESH_PLANES,
+            width=small.width,
+        )
+        depth = sweep.depth.cpu()
+        self._mesh_sweeps[f.index] = (key, depth)
+        return depth
+
+    def fuse_mesh(self, depths: MeshDepths, poses: torch.Tensor, max_depth: float, progress=None):
+        """The 0.5 level of the occupancy fused from `depths`, culled to the frustums of
+        `poses`, coloured by the map."""
         field = self.field
         occupancy = meshing.fused_occupancy(
-            depths, views.cpu(), small, truncation=3 * self.cfg.mesh_voxel
+            depths.depths.nan_to_num(0.0),
+            depths.T_wc,
+            depths.camera,
+            truncation=3 * self.cfg.mesh_voxel,
+            weights=depths.weights,
         )
 
         def color(p: torch.Tensor) -> torch.Tensor:

@@ -183,3 +183,75 @@ def plane_sweep(
     good = good & torch.isfinite(inv) & (inv > 0)
     depth = torch.where(good, 1 / inv.clamp_min(1e-6), torch.full_like(inv, math.nan))
     return SweepDepth(depth, small)
+
+
+def consistent_depths(
+    depths: torch.Tensor,
+    T_wc: torch.Tensor,
+    camera: Camera,
+    tolerance: float = 0.02,
+    neighbours: int = 3,
+    agree: int = 1,
+) -> torch.Tensor:
+    """`depths` (`(V, H, W)` z-depth at `camera`'s size, NaN where unknown, views at poses
+    `T_wc` `(V, 4, 4)` in path order) kept only where they are multi-view consistent: a
+    pixel's point, seen by at least `agree` of the `neighbours` views before and after its own,
+    lands where that view's depth is within `tolerance` (relative) of the point's. A plane
+    sweep keeps wrong matches that look unique (repeated texture, occlusion edges); two
+    sweeps against other sources rarely make the same mistake."""
+    V, H, W = depths.shape
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij"
+    )
+    uv = torch.stack([u, v], -1).view(-1, 2)
+    T_cw = pose.invert(T_wc)
+    out = torch.full_like(depths, math.nan)
+    for a in range(V):
+        d = depths[a].reshape(-1)
+        known = torch.isfinite(d)
+        points = pose.transform_points(T_wc[a], camera.unproject(uv[known], d[known]))
+        votes = torch.zeros(len(points))
+        for b in range(max(0, a - neighbours), min(V, a + neighbours + 1)):
+            if b == a:
+                continue
+            q, z = camera.project(pose.transform_points(T_cw[b], points))
+            col, row = q[:, 0].round(), q[:, 1].round()
+            inside = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+            seen = torch.full_like(z, math.nan)
+            seen[inside] = depths[b][row[inside].long(), col[inside].long()]
+            votes += ((seen - z).abs() < tolerance * z).float()  # NaN compares False
+        kept = d[known].clone()
+        kept[votes < agree] = math.nan
+        out[a].view(-1)[known] = kept
+    return out
+
+
+def _smooth(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """`(N, H, W)` images blurred by a Gaussian of `sigma` pixels (separable, edges repeated)."""
+    half = max(1, int(3 * sigma))
+    taps = torch.exp(-(torch.arange(-half, half + 1, dtype=torch.float32) ** 2) / (2 * sigma**2))
+    taps = taps / taps.sum()
+    x = F.pad(x[:, None], (half, half, 0, 0), mode="replicate")
+    x = F.conv2d(x, taps.view(1, 1, 1, -1))
+    x = F.pad(x, (0, 0, half, half), mode="replicate")
+    return F.conv2d(x, taps.view(1, 1, -1, 1))[:, 0]
+
+
+def agreeing_depths(
+    rendered: torch.Tensor, sweeps: torch.Tensor, gate: float, sigma: float, support: float
+) -> torch.Tensor:
+    """The `rendered` depth (`(V, H, W)`, the map's, NaN where not rendered) left out (NaN)
+    where the same views' multi-view depth `sweeps` (NaN where unknown) around it says it is
+    off: where the sweep/map depth ratio, averaged over a Gaussian of `sigma` pixels over the
+    pixels that have both, is more than `gate` from 1, and the sweeps cover at least
+    `support` of the Gaussian's weight there. Where the map was fitted to other poses than
+    the current ones (an adjustment moved them), it renders its surfaces too deep or too near
+    over whole regions; the sweep, found at the current poses, shows which."""
+    found = torch.isfinite(sweeps)
+    both = found & torch.isfinite(rendered) & (rendered > 0)
+    ratio = torch.where(both, sweeps / rendered.clamp_min(1e-6), torch.zeros_like(rendered))
+    weight = _smooth(both.float(), sigma)
+    local = _smooth(ratio, sigma) / weight.clamp_min(1e-6)
+    covered = (_smooth(found.float(), sigma) >= support) & (weight > 1e-3)
+    off = covered & ((local - 1).abs() > gate)
+    return torch.where(off, torch.full_like(rendered, math.nan), rendered)

@@ -100,11 +100,12 @@ def test_the_true_depth_at_the_true_poses_meshes_the_scene_to_a_centimetre(
 
 
 def test_the_mesh_split_into_the_views_scale_and_the_poses(diagnose, tmp_path, monkeypatch, capsys):
-    """`mesh` prints each mesh view's depth against the truth and evaluates the mapper's mesh,
-    the same depth at the truth's scale per view, the true depth at the estimated poses, and
-    the mesh after a longer refit; a refit of no iterations is refused before the run. (On
-    18 frames of a nearly straight walk the Sim(3) turns the meshes about the path, so
-    their figures say little here: the test holds the depth's scale and the outputs.)"""
+    """`mesh` prints each mesh view's depth (the map's and the plane sweep's) against the truth
+    and evaluates the mapper's mesh, the map's depth alone, the same at the truth's scale per
+    view, the true depth at the estimated poses, and the mesh after a longer refit; a refit
+    of no iterations is refused before the run. (On 18 frames of a nearly straight walk the
+    Sim(3) turns the meshes about the path, so their figures say little here: the test holds
+    the depth's scale and the outputs.)"""
     scene, out = tmp_path / "scene", tmp_path / "out"
     write_sequence(scene, frames=18, width=160, height=120, seed=0)
     argv = ["diagnose.py", "mesh", str(scene), "--preset", "tiny", "--frames", "18"]
@@ -114,11 +115,21 @@ def test_the_mesh_split_into_the_views_scale_and_the_poses(diagnose, tmp_path, m
     monkeypatch.setattr("sys.argv", [*argv, "--out", str(out), "--refit", "10"])
     diagnose.main()
     printed = capsys.readouterr().out
-    rows = printed.split("(median, quartiles)\n")[1].split("mesh_map.ply")[0].splitlines()
+    rows = printed.split("(kept)\n")[1].split("mesh_map.ply")[0].splitlines()
     medians = [float(r.split("|")[1].split()[0]) for r in rows]
-    # The tiny map's depth in map units is the truth's to a few percent on this scene.
-    assert len(rows) == 18 and all(0.9 < m < 1.1 for m in medians), printed
-    for name in ["mesh_map", "mesh_map_view_scale", "mesh_true_depth", "mesh_refit_10"]:
+    swept = [float(r.split("|")[2].split()[0]) for r in rows if r.split("|")[2].strip() != "-"]
+    # The tiny map's depth in map units is the truth's to a few percent on this scene, and
+    # so is the plane sweep's where it found one (the views are the keyframes).
+    assert len(rows) >= 2 and all(0.9 < m < 1.1 for m in medians), printed
+    assert swept and all(0.9 < m < 1.1 for m in swept if m == m), printed
+    names = [
+        "mesh_map",
+        "mesh_map_depth",
+        "mesh_map_view_scale",
+        "mesh_true_depth",
+        "mesh_refit_10",
+    ]
+    for name in names:
         assert (out / f"{name}.ply").stat().st_size > 0
         section = printed.split(f"{name}.ply:")[1]
         assert float(section.split("mesh accuracy")[1].split("cm")[0]) >= 0, printed

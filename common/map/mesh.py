@@ -54,7 +54,11 @@ class EmptyMeshError(DimslamError):
 
 
 def fused_occupancy(
-    depths: torch.Tensor, T_wc: torch.Tensor, camera: Camera, truncation: float
+    depths: torch.Tensor,
+    T_wc: torch.Tensor,
+    camera: Camera,
+    truncation: float,
+    weights: torch.Tensor | None = None,
 ) -> FieldFn:
     """An occupancy built from depth maps: 0.5 on the fused surface, 0 where nothing was seen.
 
@@ -71,11 +75,15 @@ def fused_occupancy(
         T_wc: `(V, 4, 4)` their camera-to-world poses.
         camera: intrinsics of the depth maps.
         truncation: signed distances are clamped to +-truncation, map units.
+        weights: `(V, H, W)` each depth's weight in the mean (default: equal).
     """
     check_shape("depths", depths, (None, camera.height, camera.width))
     check_shape("T_wc", T_wc, (depths.shape[0], 4, 4))
     T_cw = pose.invert(T_wc.double())
-    maps = depths.float()[:, None]  # (V, 1, H, W) for grid_sample
+    if weights is None:
+        weights = torch.ones_like(depths)
+    check_shape("weights", weights, tuple(depths.shape))
+    maps = torch.stack([depths.float(), weights.float()], 1)  # (V, 2, H, W) for grid_sample
     scale = torch.tensor([2.0 / camera.width, 2.0 / camera.height], dtype=torch.float32)
 
     def occupancy(p: torch.Tensor) -> torch.Tensor:
@@ -84,15 +92,15 @@ def fused_occupancy(
         for v in range(T_cw.shape[0]):
             uv, z = camera.project(pose.transform_points(T_cw[v], p.double()).float())
             grid = (uv + 0.5) * scale - 1  # pixel centres at integer coordinates
-            d = torch.nn.functional.grid_sample(
+            d, w = torch.nn.functional.grid_sample(
                 maps[v : v + 1], grid.view(1, 1, -1, 2), mode="nearest", align_corners=False
-            ).view(-1)
+            ).view(2, -1)
             inside = (grid.abs() <= 1).all(-1) & (z > 0) & torch.isfinite(d) & (d > 0)
             sdf = (d - z).clamp(-truncation, truncation)
             seen = inside & (d - z > -truncation)
-            total += torch.where(seen, sdf, 0.0)
-            count += seen.float()
-        sdf = total / count.clamp(min=1)
+            total += torch.where(seen, w * sdf, 0.0)
+            count += torch.where(seen, w, 0.0)
+        sdf = total / count.clamp(min=1e-6)
         # Never seen within the truncation band (outside every view, or deep behind every
         # surface that sees it): unknown, so no surface forms between what was seen and what
         # was not (neither a false inner shell nor walls at the edges of the views).

@@ -12,8 +12,15 @@ from dimslam.common.geometry import pose
 from dimslam.common.io.synth import SynthScene, default_camera
 from dimslam.common.map.render import render_image
 from dimslam.common.optim.window import FrameState
-from dimslam.mapper.mapper import MapperConfig
-from dimslam.mapper.stereo import WIDTH, plane_sweep, sample_depths
+from dimslam.mapper import mapper as mapper_module
+from dimslam.mapper.mapper import MESH_MAP_WEIGHT, MapperConfig
+from dimslam.mapper.stereo import (
+    WIDTH,
+    agreeing_depths,
+    consistent_depths,
+    plane_sweep,
+    sample_depths,
+)
 
 
 @pytest.fixture(scope="module")
@@ -109,3 +116,104 @@ def test_mapping_rounds_pull_a_wrong_depth_towards_the_sweeps():
         depth, _ = render_image(m.field, CAM, frames[2].T_wc, m.render_cfg)
         ends[weight] = abs(float(depth.median()) - 2.0)
     assert ends[0.3] < 0.5 * ends[0.0]
+
+
+def _wall_depth(T_wc: torch.Tensor) -> torch.Tensor:
+    """`CAM`'s z-depth of the wall z = 2 (`textured_wall_image`) seen from `T_wc`."""
+    v, u = torch.meshgrid(
+        torch.arange(float(CAM.height)), torch.arange(float(CAM.width)), indexing="ij"
+    )
+    d_w = CAM.unproject(torch.stack([u, v], -1), torch.ones_like(u)) @ T_wc[:3, :3].T
+    t = (2.0 - T_wc[2, 3]) / d_w[..., 2]  # along the ray of unit z in the camera
+    return t
+
+
+def _wall_poses(n: int = 6) -> torch.Tensor:
+    """`n` views of the wall, 5 cm apart along x, each turned 0.02 rad more about y."""
+    turn = [pose.exp_so3(torch.tensor([0.0, 0.02 * i, 0.0])) for i in range(n)]
+    return torch.stack(
+        [pose.make_pose(R, torch.tensor([0.05 * i, 0.0, 0.0])) for i, R in enumerate(turn)]
+    )
+
+
+def test_consistent_depths_drop_what_the_neighbours_contradict():
+    """The true depth of six views is kept where nothing contradicts it; a patch of one view
+    put 20 % too deep is dropped (its neighbours see the wall elsewhere), the rest kept."""
+    T = _wall_poses()
+    true = torch.stack([_wall_depth(T_i) for T_i in T])
+    wrong = true.clone()
+    wrong[2, 10:30, 10:30] *= 1.2
+    kept = consistent_depths(wrong, T, CAM)
+    assert torch.isnan(kept[2, 10:30, 10:30]).all()
+    others = torch.ones_like(true, dtype=torch.bool)
+    others[2, 10:30, 10:30] = False
+    assert float(torch.isfinite(kept[others]).float().mean()) > 0.9
+    assert torch.equal(kept[others & torch.isfinite(kept)], wrong[others & torch.isfinite(kept)])
+    unknown = torch.full_like(true, math.nan)
+    assert torch.isnan(consistent_depths(unknown, T, CAM)).all()
+
+
+def test_agreeing_depths_drop_the_map_where_the_sweeps_say_it_is_off():
+    """A map rendering the left half of a view 30 % too deep: that half is left out, the
+    right half kept, and a region no sweep saw is kept as the map renders it."""
+    true = _wall_depth(torch.eye(4))[None]
+    rendered = true.clone()
+    rendered[:, :, :32] *= 1.3
+    sweeps = true.clone()
+    sweeps[:, ::2] = math.nan  # half the rows unknown: the local mean fills them
+    sweeps[:, 30:, 40:] = math.nan  # a corner no sweep saw
+    kept = agreeing_depths(rendered, sweeps, gate=0.1, sigma=3.0, support=0.1)
+    assert torch.isnan(kept[0, :, :24]).all()
+    assert torch.equal(kept[0, :, 40:], rendered[0, :, 40:])
+    assert torch.equal(kept[0, :20, 36:], rendered[0, :20, 36:])
+
+
+@pytest.mark.parametrize("sweeps", [True, False])
+def test_the_mesh_takes_the_sweeps_depth_where_the_map_is_off(sweeps, monkeypatch):
+    """A map fitted to a plane at 2.6 where the wall is at 2 (as a map fitted to poses that an
+    adjustment then moved): with `mesh_sweeps` the mesh lies on the wall (its plane sweeps),
+    the map's depth left out; without, on the map's plane. The sweeps are computed once for
+    unchanged poses and again for the keyframes whose poses (or sources') moved."""
+    calls = []
+    original = mapper_module.plane_sweep
+    monkeypatch.setattr(
+        mapper_module, "plane_sweep", lambda *a, **k: calls.append(a[1]) or original(*a, **k)
+    )
+    torch.manual_seed(0)
+    frames = [
+        FrameState(i, i / 30, textured_wall_image(T), T.clone(), keyframe=True)
+        for i, T in enumerate(_wall_poses(10))
+    ]
+    m = small_mapper(MapperConfig(gauge_depth=2.6, mesh_sweeps=sweeps, mesh_width=64))
+    m.fit_prior(frames[0])
+    poses = torch.stack([f.T_wc for f in frames])
+    depths = m.mesh_depths(poses, frames)
+    views = len(frames)
+    if sweeps:
+        assert len(depths.depths) == views and len(calls) == views
+        swept = depths.weights == 1  # the sweep's pixels; the map's weigh MESH_MAP_WEIGHT
+        assert torch.equal(
+            depths.weights[~swept], torch.full_like(depths.weights[~swept], MESH_MAP_WEIGHT)
+        )
+        assert abs(float(depths.depths[swept].median()) - 2.0) < 0.05
+        assert float(swept.float().mean()) > 0.3
+        # the map's plane is left out where the sweeps around say it is off: measured, of the
+        # 16 % of the pixels that render it and have no sweep, two thirds (the rest lie
+        # beyond the sweeps' reach, at the images' edges)
+        plane = ((depths.rendered - 2.6).abs() < 0.2) & ~swept
+        kept = plane & torch.isfinite(depths.depths)
+        assert float(kept.float().mean()) < 0.5 * float(plane.float().mean())
+    else:
+        assert torch.equal(depths.depths, depths.rendered) and not calls
+    assert abs(float(depths.rendered.nanmedian()) - 2.6) < 0.15  # the map's plane
+    mesh = m.extract_mesh(poses, 4.0, frames)
+    z = float(np.median(mesh.vertices[:, 2]))
+    assert abs(z - (2.0 if sweeps else 2.6)) < 0.1, z
+    if sweeps:
+        calls.clear()
+        m.mesh_depths(poses, frames)
+        assert not calls  # nothing moved: every sweep from the cache
+        frames[0].T_wc = frames[0].T_wc.clone()
+        frames[0].T_wc[0, 3] -= 0.01
+        m.mesh_depths(poses, frames)
+        assert 1 <= len(calls) < views  # frame 0 and those it is a source of, not the others

@@ -249,3 +249,31 @@ def test_fused_occupancy_meshes_the_surface_the_depth_maps_see():
     assert len(fast.faces) == len(mesh.faces)
     np.testing.assert_allclose(np.sort(fast.vertices, 0), np.sort(mesh.vertices, 0), atol=1e-6)
     assert counted[True] < 0.6 * counted[False], counted
+
+
+def test_fused_occupancy_weighs_each_depth():
+    """Two views of the ball from +x, one seeing it a voxel too deep: with equal weights the
+    fused surface lies half a voxel deeper, with the deep one at weight 1/4 a fifth of a
+    voxel (the weighted mean of the two signed distances), and a weight of 0 leaves it out."""
+    T = np.stack([AROUND[0], AROUND[0]])
+    near = _sphere_depth(AROUND[0])
+    far = torch.where(near < 10.0, near + VOXEL, near)
+    depths = torch.stack([near, far])
+    surface = CENTRE + np.array([RADIUS, 0, 0])
+
+    def crossing(weights) -> float:
+        """Where the occupancy crosses 0.5 along +x (towards the camera) from the true
+        surface."""
+        occupancy = fused_occupancy(depths, torch.from_numpy(T), CAMERA, 3 * VOXEL, weights)
+        steps = np.linspace(-VOXEL, 2 * VOXEL, 301)
+        points = torch.from_numpy(surface + steps[:, None] * np.array([1.0, 0, 0])).float()
+        return float(steps[int(np.argmax(occupancy(points).numpy() < 0.5))])
+
+    full = torch.ones_like(depths)
+    quarter = torch.stack([full[0], 0.25 * full[1]])
+    alone = torch.stack([full[0], 0 * full[1]])
+    assert abs(crossing(None) + VOXEL / 2) < 0.05 * VOXEL
+    assert abs(crossing(quarter) + VOXEL / 5) < 0.05 * VOXEL
+    assert abs(crossing(alone)) < 0.05 * VOXEL
+    with pytest.raises(ValueError):
+        fused_occupancy(depths, torch.from_numpy(T), CAMERA, 3 * VOXEL, torch.ones(2))
