@@ -679,7 +679,8 @@ class Mapper:
             swept = [self._mesh_sweep(f, held, small) for f in views]
             sweeps = consistent_depths(torch.stack(swept), T_wc, small)
             # The map's depth where no sweep is, and on every other row and column of the
-            # sweeps' pixels for `agreeing_depths` (a third less rendering, same mesh).
+            # sweeps' pixels for `agreeing_depths` (a fifth of the extraction's time saved,
+            # the mesh's figures within 0.3 cm and 0.2 %, docs/results.md).
             found = torch.isfinite(sweeps)
             sparse = torch.zeros_like(found)
             sparse[:, ::2, ::2] = True
@@ -706,12 +707,7 @@ class Mapper:
         """`(V, h, w)` depth the map renders at `small`'s size from poses `T_wc`, only at the
         pixels `only` (`(V, h, w)` bool; NaN elsewhere) if given."""
         device = self.field.bound.device
-        v, u = torch.meshgrid(
-            torch.arange(small.height, dtype=torch.float32),
-            torch.arange(small.width, dtype=torch.float32),
-            indexing="ij",
-        )
-        uv = torch.stack([u, v], -1).view(-1, 2)
+        uv = small.pixels()
         out = torch.full((len(T_wc), small.height, small.width), math.nan)
         with torch.no_grad():
             for i, T in enumerate(T_wc):

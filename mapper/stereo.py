@@ -127,12 +127,7 @@ def plane_sweep(
     var_r = (_box((ref * ref)[None])[0] - mean_r**2).clamp_min(0)
     textured = var_r.sqrt() > MIN_TEXTURE
 
-    v, u = torch.meshgrid(
-        torch.arange(H, device=device, dtype=torch.float32),
-        torch.arange(W, device=device, dtype=torch.float32),
-        indexing="ij",
-    )
-    rays = small.unproject(torch.stack([u, v], -1).view(-1, 2), torch.ones(H * W, device=device))
+    rays = small.unproject(small.pixels(device), torch.ones(H * W, device=device))
     inverse = torch.linspace(1 / near, 1 / far, planes, device=device)  # near to far
     costs = []
     for src_rgb, T_src in sources:
@@ -200,10 +195,7 @@ def consistent_depths(
     sweep keeps wrong matches that look unique (repeated texture, occlusion edges); two
     sweeps against other sources rarely make the same mistake."""
     V, H, W = depths.shape
-    v, u = torch.meshgrid(
-        torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij"
-    )
-    uv = torch.stack([u, v], -1).view(-1, 2)
+    uv = camera.pixels()
     T_cw = pose.invert(T_wc)
     out = torch.full_like(depths, math.nan)
     for a in range(V):

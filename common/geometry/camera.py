@@ -115,6 +115,15 @@ class Camera:
         y = (uv[..., 1] - self.cy) / self.fy * depth
         return torch.stack([x, y, depth], dim=-1)
 
+    def pixels(self, device: torch.device | str | None = None) -> torch.Tensor:
+        """Every pixel centre `(H * W, 2)` (u, v), row by row."""
+        v, u = torch.meshgrid(
+            torch.arange(self.height, device=device, dtype=torch.float32),
+            torch.arange(self.width, device=device, dtype=torch.float32),
+            indexing="ij",
+        )
+        return torch.stack([u, v], dim=-1).view(-1, 2)
+
     def inside(self, uv: torch.Tensor, margin: float = 0.0) -> torch.Tensor:
         """Boolean `(...)`: pixel centres `(..., 2)` inside the image, `margin` pixels in."""
         u, v = uv[..., 0], uv[..., 1]

@@ -315,13 +315,7 @@ def render_image(
     chunk: int = 4096,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A whole `(H, W)` depth and `(H, W, 3)` colour image, in chunks, without gradients."""
-    device = T_wc.device
-    v, u = torch.meshgrid(
-        torch.arange(camera.height, device=device, dtype=torch.float32),
-        torch.arange(camera.width, device=device, dtype=torch.float32),
-        indexing="ij",
-    )
-    uv = torch.stack([u, v], dim=-1).view(-1, 2)
+    uv = camera.pixels(T_wc.device)
     depths, colours = [], []
     with torch.no_grad():
         for start in range(0, uv.shape[0], chunk):

@@ -109,3 +109,12 @@ def test_frustum_mask_keeps_what_the_camera_sees():
     T_back = pose.make_pose(pose.exp_so3(torch.tensor([0.0, math.pi, 0.0])), torch.zeros(3))
     both = np.stack([np.eye(4), T_back.double().numpy()])
     assert frustum_mask(points, both, WIDE).tolist() == [True, True, False, True, True]
+
+
+def test_pixels_lists_every_pixel_row_by_row():
+    small = CAM.resized(8)
+    uv = small.pixels()
+    assert uv.shape == (small.width * small.height, 2)
+    k = torch.arange(len(uv))
+    assert torch.equal(uv[:, 0], (k % small.width).float())
+    assert torch.equal(uv[:, 1], (k // small.width).float())
