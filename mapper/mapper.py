@@ -63,7 +63,9 @@ STEREO_ANGLE = 20.0
 STEREO_NEAR = 0.2
 """The plane sweep searches depths from this share of the gauge depth to `RenderConfig.far`."""
 MESH_PLANES = 48
-"""Inverse depths each mesh view's plane sweep searches."""
+"""Inverse depths each mesh view's plane sweep searches (`stereo.PLANES`, 64, for the mapping
+rounds' sweeps): a quarter less time, the mesh no worse (fewer cost room3's completion;
+docs/benchmarks.md, "Mesh extraction with the keyframes' plane sweeps")."""
 RENDER_CHUNK = 4096
 """Rays rendered at once for the mesh's depth (bounds the memory)."""
 MESH_MAP_WEIGHT = 0.3
