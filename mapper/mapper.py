@@ -27,7 +27,7 @@ import torch
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map import mesh as meshing
 from dimslam.common.map.field import MapConfig, make_field
-from dimslam.common.map.render import RenderConfig, camera_rays, render_pixels
+from dimslam.common.map.render import RenderConfig, camera_rays, render_chunked, render_pixels
 from dimslam.common.optim.objective import LossConfig, WindowLoss, window_objective
 from dimslam.common.optim.window import (
     FrameState,
@@ -66,8 +66,6 @@ MESH_PLANES = 48
 """Inverse depths each mesh view's plane sweep searches (`stereo.PLANES`, 64, for the mapping
 rounds' sweeps): a quarter less time, the mesh no worse (fewer cost room3's completion;
 docs/benchmarks.md, "Mesh extraction with the keyframes' plane sweeps")."""
-RENDER_CHUNK = 4096
-"""Rays rendered at once for the mesh's depth (bounds the memory)."""
 MESH_MAP_WEIGHT = 0.3
 """Weight of the map's rendered depth in the mesh's fusion, against a plane sweep's 1: where a
 view's sweep saw the surface, the map's depth is not used; where it did not, the map's fills,
@@ -709,25 +707,16 @@ class Mapper:
         """`(V, h, w)` depth the map renders at `small`'s size from poses `T_wc`, only at the
         pixels `only` (`(V, h, w)` bool; NaN elsewhere) if given."""
         device = self.field.bound.device
-        uv = small.pixels()
+        uv = small.pixels(device)
         out = torch.full((len(T_wc), small.height, small.width), math.nan)
-        with torch.no_grad():
-            for i, T in enumerate(T_wc):
-                wanted = slice(None) if only is None else only[i].view(-1)
-                at = uv[wanted]
-                depth = [
-                    render_pixels(
-                        self.field,
-                        small,
-                        at[k : k + RENDER_CHUNK].to(device),
-                        T.to(device),
-                        self.render_cfg,
-                        with_color=False,
-                    ).depth.cpu()
-                    for k in range(0, len(at), RENDER_CHUNK)
-                ]
-                if depth:
-                    out[i].view(-1)[wanted] = torch.cat(depth)
+        everywhere = torch.ones(len(uv), dtype=torch.bool)
+        for i, T in enumerate(T_wc):
+            wanted = everywhere if only is None else only[i].view(-1)
+            at = uv[wanted.to(device)]
+            depth, _ = render_chunked(
+                self.field, small, at, T.to(device), self.render_cfg, with_color=False
+            )
+            out[i].view(-1)[wanted] = depth.cpu()
         return out
 
     def _mesh_sweep(self, f: FrameState, held: list[FrameState], small: Camera) -> torch.Tensor:
@@ -739,7 +728,7 @@ class Mapper:
             return torch.full((small.height, small.width), math.nan)
         key = torch.stack([g.T_wc.detach().cpu() for g in [f, *sources]])
         cached = self._mesh_sweeps.get(f.index)
-        if cached is not None and cached[0].shape == key.shape and torch.equal(cached[0], key):
+        if cached is not None and torch.equal(cached[0], key):  # False for other sources
             return cached[1]
         sweep = plane_sweep(
             f.rgb,

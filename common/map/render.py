@@ -307,6 +307,29 @@ def render_pixels(
     return render_rays(field, origins, directions, cfg, generator, with_color, depth_prior)
 
 
+def render_chunked(
+    field: FieldFn,
+    camera: Camera,
+    uv: torch.Tensor,
+    T_wc: torch.Tensor,
+    cfg: RenderConfig,
+    chunk: int = 4096,
+    with_color: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """`render_pixels` over any number of pixels `(R, 2)`, `chunk` rays at a time (bounds the
+    memory), without gradients: depth `(R,)` and colour `(R, 3)` (None without colour)."""
+    depths, colours = [], []
+    with torch.no_grad():
+        for start in range(0, uv.shape[0], chunk):
+            out = render_pixels(
+                field, camera, uv[start : start + chunk], T_wc, cfg, None, with_color
+            )
+            depths.append(out.depth)
+            colours.append(out.rgb)
+    depth = torch.cat(depths) if depths else uv.new_zeros(0)
+    return depth, torch.cat(colours) if with_color and colours else None
+
+
 def render_image(
     field: FieldFn,
     camera: Camera,
@@ -315,15 +338,9 @@ def render_image(
     chunk: int = 4096,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A whole `(H, W)` depth and `(H, W, 3)` colour image, in chunks, without gradients."""
-    uv = camera.pixels(T_wc.device)
-    depths, colours = [], []
-    with torch.no_grad():
-        for start in range(0, uv.shape[0], chunk):
-            out = render_pixels(field, camera, uv[start : start + chunk], T_wc, cfg)
-            depths.append(out.depth)
-            colours.append(out.rgb)
+    depth, colour = render_chunked(field, camera, camera.pixels(T_wc.device), T_wc, cfg, chunk)
     shape = (camera.height, camera.width)
-    return torch.cat(depths).view(shape), torch.cat(colours).view(*shape, 3)
+    return depth.view(shape), colour.view(*shape, 3)
 
 
 class DepthPrior:
