@@ -2,6 +2,7 @@
 
     python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR [--length L] [--linked N]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
+        [--guided]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -19,7 +20,8 @@ run's frame by Sim(3)), with the first two keyframes held (they fix the gauge an
   where it ends.
 
 The *blind* start is what the mapper does (`--bundle.enabled true`): from the run, with the
-outliers judged at its own poses (`mapper.bundle.adjust`). The points and observations on
+outliers judged at its own poses (`mapper.bundle.adjust_tracks`; with `--guided`, guided
+matching between its two passes, as `bundle.guided`). The points and observations on
 the first line are those the truth keeps; the blind start's own (the figures of the
 mapper's log line) are printed after it.
 
@@ -53,7 +55,7 @@ from dimslam.mapper.bundle import (
     BundleConfig,
     FeatureTracks,
     Observations,
-    adjust,
+    adjust_tracks,
     bundle_adjust,
     grey_image,
     links,
@@ -169,6 +171,13 @@ def main() -> None:
         "step's length is left to the features (0: lengths free everywhere)",
     )
     p.add_argument("--width", type=int, default=320, help="image width (the cpu preset's)")
+    p.add_argument(
+        "--guided",
+        action=argparse.BooleanOptionalAction,
+        default=defaults.guided,
+        help="blind start: guided matching between the adjustment's two passes "
+        "(`bundle.guided`; default: the mapper's default)",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -245,9 +254,14 @@ def main() -> None:
         T_wc = starts["run" if name == "blind" else name]
         T_cw = pose.invert(T_wc)
         if name == "blind":
-            result = adjust(T_wc, K, unjudged, args.outlier, args.iters, prior)
+            cfg = BundleConfig(
+                views=args.views, outlier=args.outlier, iters=args.iters, guided=args.guided
+            )
+            result = adjust_tracks(tracks, list(range(n)), T_wc, K, cfg, prior)
             T_ba, cost, held = result.T_wc, result.cost, "-"
             blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
+            if args.guided:
+                kept += f" ({result.guided} by guided matching)"
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
             T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, 2, args.iters, prior=prior)

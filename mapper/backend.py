@@ -38,7 +38,7 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
-from dimslam.mapper.bundle import FeatureTracks, adjust, grey_image, prior_for
+from dimslam.mapper.bundle import FeatureTracks, adjust_tracks, grey_image, prior_for
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 from dimslam.tracker.frontend import MAX_VELOCITY_STEPS, carry_motion
@@ -334,17 +334,19 @@ class BackEnd:
         T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])
         K = torch.from_numpy(self.camera.K)
         prior = prior_for(T_wc, obs, cfg)
-        result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
+        result = adjust_tracks(self.tracks, [kf.index for kf in keyframes], T_wc, K, cfg, prior)
         # The adjustment holds only the first two keyframes, so the path as a whole may come
         # out turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
         moved = self._move(keyframes, sim3.from_pose(T_new, scales))
         log.info(
-            "feature bundle adjustment of %d keyframes: %d points, %d observations, cost "
-            "%.1f; keyframes moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
+            "feature bundle adjustment of %d keyframes: %d points, %d observations (%d by "
+            "guided matching), cost %.1f; keyframes moved %.3f median, %.3f at most; steps "
+            "scaled %.2f-%.2f (%.1f s)",
             len(keyframes),
             result.points,
             result.observations,
+            result.guided,
             result.cost,
             float(np.median(moved)),
             max(moved),

@@ -12,9 +12,11 @@ from dimslam.common.io.trajectory import Trajectory
 from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
     BundleConfig,
+    Features,
     FeatureTracks,
     Observations,
     adjust,
+    adjust_tracks,
     bundle_adjust,
     grey_image,
     links,
@@ -160,6 +162,71 @@ def test_tracks_link_the_features_of_a_rendered_walk(tmp_path):
         T_cw, triangulate(T_cw, torch.from_numpy(Kc), obs), torch.from_numpy(Kc), obs
     )
     assert float(r.norm(dim=1).median()) < 0.5
+
+
+def _short_tracks():
+    """Features of the points every camera of `_scene` sees, beside 200 random ones per
+    keyframe (indices 0, 10, ..., 70), joined over keyframes 0-2 only (and, for points
+    100-149, again over 5-7); points 0-49 have another descriptor in keyframe 5."""
+    T_wc, X, obs = _scene(cameras=8, points=300)
+    uv = obs.uv.view(8, 300, 2)
+    inside = ((uv >= 0) & (uv < torch.tensor([320.0, 240.0]))).all(2).all(0)
+    X, uv = X[inside], uv[:, inside]  # the points every keyframe sees
+    n = len(X)
+    rng = np.random.default_rng(0)
+    described = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    tracks = FeatureTracks(K.numpy(), 1500, 8)
+    for k in range(8):
+        clutter = rng.uniform([0, 0], [320, 240], (200, 2))
+        descriptors = np.concatenate([described, rng.integers(0, 256, (200, 32), dtype=np.uint8)])
+        if k == 5:
+            descriptors[:50] = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+        points = np.concatenate([uv[k].numpy(), clutter])
+        tracks.insert(10 * k, Features(points, np.ones(len(points)), descriptors))
+    for i in range(n):
+        tracks.join(10, i, 0, i)
+        tracks.join(20, i, 10, i)
+    for i in range(100, 150):
+        tracks.join(60, i, 50, i)
+        tracks.join(70, i, 60, i)
+    return tracks, T_wc, X
+
+
+def test_guided_matching_carries_tracks_to_every_keyframe_that_sees_them():
+    """Projected at the poses, each point finds its feature in the other keyframes and the
+    two tracks of one point become one; a feature whose descriptor is another's and the
+    random features beside the points are left alone."""
+    tracks, T_wc, X = _short_tracks()
+    n = len(X)
+    indices = [10 * k for k in range(8)]
+    before = tracks.observations(indices, 3)
+    assert before.points == n + 50 and int(torch.bincount(before.p).max()) == 3
+
+    made = tracks.guide(indices, pose.invert(T_wc), 3, 3.0)
+
+    after = tracks.observations(indices, 3)
+    seen = torch.bincount(after.p)
+    # 0-49: keyframes 3, 4, 6, 7; 100-149: one merge, then 3 and 4; the rest 3-7.
+    assert made == 50 * 4 + 50 * 3 + (n - 100) * 5
+    assert after.points == n and int((seen == 7).sum()) == 50 and int((seen == 8).sum()) == n - 50
+    # Every observation is of its track's point: none of the clutter, none of another point.
+    T_cw = pose.invert(T_wc)
+    r, _ = reprojection(T_cw, triangulate(T_cw, K, after), K, after)
+    assert float(r.norm(dim=1).max()) < 1e-6
+
+
+def test_guided_matching_between_the_passes_of_the_adjustment():
+    """`bundle.guided`: from perturbed poses, the tracks of 3 keyframes are carried at the
+    first pass's poses to the others, and the second pass ends at the truth (keyframes 3
+    and 4, which no track saw, with them)."""
+    tracks, T_wc, _ = _short_tracks()
+    indices = [10 * k for k in range(8)]
+    start = pose.invert(_perturbed(T_wc, 0.003))
+    cfg = BundleConfig(guided=True)
+    result = adjust_tracks(tracks, indices, start, K, cfg, None)
+    n = len(_short_tracks()[2])
+    assert result.guided > 4 * n and result.observations >= 7 * n  # from 3 views to 7-8
+    assert float((result.T_wc[:, :3, 3] - T_wc[:, :3, 3]).norm(dim=1).max()) < 1e-4
 
 
 def test_settings_are_checked():
