@@ -329,7 +329,6 @@ class FeatureTracks:
 
         links = 0
         T = T_cw.numpy()
-        width, height = 2 * self.K[0, 2] + 1, 2 * self.K[1, 2] + 1
         for kk, index in enumerate(indices):
             f = self.keyframes[index]
             if f.descriptors is None or len(f.points) == 0:
@@ -337,7 +336,10 @@ class FeatureTracks:
             c = X @ T[kk, :3, :3].T + T[kk, :3, 3]
             z = np.maximum(c[:, 2], 1e-9)
             uv = c[:, :2] / z[:, None] * self.K.diagonal()[:2] + self.K[:2, 2]
-            inside = (c[:, 2] > 1e-3) & (uv >= 0).all(1) & (uv[:, 0] < width) & (uv[:, 1] < height)
+            # Within reach of the keyframe's features (its image, as far as features go).
+            reach = GUIDE_RADIUS * f.sigma.max()
+            low, high = f.points.min(0) - reach, f.points.max(0) + reach
+            inside = (c[:, 2] > 1e-3) & (uv > low).all(1) & (uv < high).all(1)
             roots = np.array([find(q) for q in range(kept.points)])
             candidates = np.flatnonzero(inside & ~seen[roots, kk])
             if len(candidates) == 0:
