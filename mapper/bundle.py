@@ -197,6 +197,14 @@ def describe(grey: np.ndarray, features: int) -> Features:
     return Features(points, sigma, descriptors)
 
 
+def root(parent: np.ndarray, a: int) -> int:
+    """The root of `a` in the union-find forest `parent` (paths halved on the way)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = int(parent[a])
+    return a
+
+
 class FeatureTracks:
     """Keyframes' features, added in path order, and the tracks their matches make."""
 
@@ -213,11 +221,7 @@ class FeatureTracks:
         return index in self.keyframes
 
     def _root(self, a: int) -> int:
-        parent = self.parent
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = int(parent[a])
-        return a
+        return root(self.parent, a)
 
     def add(self, index: int, grey: np.ndarray) -> None:
         """Describe keyframe `index` (newer than every one added) and link its features to
@@ -322,10 +326,7 @@ class FeatureTracks:
         alone = np.bincount(every_root, minlength=len(self.parent))[every_root] == 1
 
         def find(q: int) -> int:
-            while rep[q] != q:
-                rep[q] = rep[rep[q]]
-                q = int(rep[q])
-            return q
+            return root(rep, q)
 
         links = 0
         T = T_cw.numpy()
