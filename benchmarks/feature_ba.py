@@ -2,7 +2,7 @@
 
     python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR [--length L] [--linked N]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
-        [--guided]
+        [--guided] [--flow N [--flow-realign]] [--save POSES.npy]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -33,6 +33,10 @@ relative to the step before is held too (within `--length`, log of the ratio), s
 stretch no feature sees keeps its neighbours' scale (as `bundle.length` and `bundle.linked`
 in the mapper; `--linked 0` leaves every length to the features).
 
+`--flow N` adds N corners followed by optical flow through every frame of the sequence
+between the first and the last keyframe, observed at the keyframes (`bundle.flow`,
+`mapper.bundle.FlowTracks`), as points of their own beside the ORB tracks.
+
 `--noise PX` replaces every observation by the projection of its point at the true poses
 plus Gaussian noise: the features as an ideal detector would give them, which separates
 what the data says from how well the problem is conditioned.
@@ -54,11 +58,13 @@ from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
     BundleConfig,
     FeatureTracks,
+    FlowTracks,
     Observations,
     adjust_tracks,
     bundle_adjust,
     grey_image,
     links,
+    observed,
     prior_for,
     reprojection,
     triangulate,
@@ -178,6 +184,23 @@ def main() -> None:
         help="blind start: guided matching between the adjustment's two passes "
         "(`bundle.guided`; default: the mapper's default)",
     )
+    p.add_argument(
+        "--flow",
+        type=int,
+        default=defaults.flow,
+        help="also corners followed by optical flow through every frame, this many "
+        "(`bundle.flow`; 0: ORB alone)",
+    )
+    p.add_argument(
+        "--flow-realign",
+        action=argparse.BooleanOptionalAction,
+        default=defaults.flow_realign,
+        help="align the flow's corners again with their first keyframe at each keyframe "
+        "(`bundle.flow_realign`)",
+    )
+    p.add_argument(
+        "--save", type=Path, help="blind start: write the adjusted keyframe poses here (.npy)"
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -187,20 +210,24 @@ def main() -> None:
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
     K = torch.from_numpy(reader.camera.K)
     wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}
-    images, truth, every_truth = {}, {}, {}
-    for frame in reader:
+    images, truth, every_truth, at = {}, {}, {}, {}
+    flow = FlowTracks(args.flow, args.flow_realign) if args.flow > 0 else None
+    for i, frame in enumerate(reader):
         every_truth[round(frame.timestamp, 4)] = frame.T_wc
         k = wanted.get(round(frame.timestamp, 4))
         if k is not None:
             images[k] = grey_image(frame.rgb)
-            truth[k] = frame.T_wc
+            truth[k], at[k] = frame.T_wc, i
+        if flow is not None and at:
+            flow.add(i, images[k] if k is not None else grey_image(frame.rgb), k is not None)
     if len(images) != len(wanted) or any(t is None for t in truth.values()):
         p.error(f"{args.dataset}: {len(images)} of {len(wanted)} keyframes found with ground truth")
     n = len(images)
     tracks = FeatureTracks(K.numpy(), defaults.features, args.neighbours)
+    indices = [at[k] for k in range(n)]  # keyframe k is frame indices[k] of the sequence
     for k in range(n):
-        tracks.add(k, images[k])
-    unjudged = tracks.observations(list(range(n)), args.views)
+        tracks.add(indices[k], images[k])
+    unjudged = observed(tracks, flow, indices, args.views)
     gt = np.stack([truth[k] for k in range(n)])
     run = torch.from_numpy(keyframes.poses)
     starts = {
@@ -257,7 +284,7 @@ def main() -> None:
             cfg = BundleConfig(
                 views=args.views, outlier=args.outlier, iters=args.iters, guided=args.guided
             )
-            result = adjust_tracks(tracks, list(range(n)), T_wc, K, cfg, prior)
+            result = adjust_tracks(tracks, indices, T_wc, K, cfg, prior, flow)
             T_ba, cost, held = result.T_wc, result.cost, "-"
             blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
             if args.guided:
@@ -268,6 +295,8 @@ def main() -> None:
             T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
         before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
         print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
+    if blind is not None and args.save is not None:
+        np.save(args.save, blind.numpy())
     if blind is not None:
         # The figures of the mapper's log line: the points above are those the truth keeps.
         print(f"blind: the adjustment kept {kept} (outliers judged at the run's poses)")

@@ -38,7 +38,14 @@ from dimslam.common.geometry.camera import Camera
 from dimslam.common.io.trajectory import Trajectory
 from dimslam.common.map.mesh import EmptyMeshError, write_mesh
 from dimslam.common.optim.window import FrameState, release_images
-from dimslam.mapper.bundle import FeatureTracks, adjust_tracks, grey_image, prior_for
+from dimslam.mapper.bundle import (
+    FeatureTracks,
+    FlowTracks,
+    adjust_tracks,
+    grey_image,
+    observed,
+    prior_for,
+)
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 from dimslam.tracker.frontend import MAX_VELOCITY_STEPS, carry_motion
@@ -123,6 +130,11 @@ class BackEnd:
         bundle = cfg.bundle
         self.tracks = (
             FeatureTracks(camera.K, bundle.features, bundle.neighbours) if bundle.enabled else None
+        )
+        self.flow = (
+            FlowTracks(bundle.flow, bundle.flow_realign)
+            if bundle.enabled and bundle.flow > 0
+            else None
         )
         self.adjusted_at = 0  # keyframes with features at the last adjustment
 
@@ -310,13 +322,19 @@ class BackEnd:
         return self.tracks is not None or self.cfg.mapper.post_iters > 0
 
     def _describe(self, window: list[FrameState]) -> None:
-        """Add the window's new keyframes to the feature tracks (`bundle.enabled`)."""
+        """Add the window's new keyframes to the feature tracks (`bundle.enabled`), and
+        every new frame to the flow's (`bundle.flow`)."""
         if self.tracks is None:
             return
         newest = max(self.tracks.keyframes, default=-1)
         for f in window:
-            if f.keyframe and f.rgb is not None and f.index > newest:
-                self.tracks.add(f.index, grey_image(f.rgb))
+            if f.rgb is None:
+                continue
+            grey = grey_image(f.rgb) if f.keyframe or self.flow is not None else None
+            if self.flow is not None:
+                self.flow.add(f.index, grey, f.keyframe)
+            if f.keyframe and f.index > newest:
+                self.tracks.add(f.index, grey)
 
     def adjust_keyframes(self) -> None:
         """Refine every described keyframe's pose by the feature bundle adjustment
@@ -330,21 +348,25 @@ class BackEnd:
             return
         self.adjusted_at = len(self.tracks.keyframes)
         started = time.perf_counter()
-        obs = self.tracks.observations([kf.index for kf in keyframes], cfg.views)
+        indices = [kf.index for kf in keyframes]
+        obs = observed(self.tracks, self.flow, indices, cfg.views)
         T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])
         K = torch.from_numpy(self.camera.K)
         prior = prior_for(T_wc, obs, cfg)
-        result = adjust_tracks(self.tracks, [kf.index for kf in keyframes], T_wc, K, cfg, prior)
+        result = adjust_tracks(self.tracks, indices, T_wc, K, cfg, prior, self.flow)
         # The adjustment holds only the first two keyframes, so the path as a whole may come
         # out turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
         moved = self._move(keyframes, sim3.from_pose(T_new, scales))
+        followed = 0 if self.flow is None else self.flow.observations(indices, cfg.views).points
         log.info(
-            "feature bundle adjustment of %d keyframes: %d points, %d observations (%d by "
-            "guided matching), cost %.1f; keyframes moved %.3f median, %.3f at most; steps "
-            "scaled %.2f-%.2f (%.1f s)",
+            "feature bundle adjustment of %d keyframes: %d points (of %d ORB tracks and %d "
+            "flow tracks), %d observations (%d by guided matching), cost %.1f; keyframes moved %.3f "
+            "median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
             len(keyframes),
             result.points,
+            obs.points - followed,
+            followed,
             result.observations,
             result.guided,
             result.cost,

@@ -117,6 +117,21 @@ class BundleConfig:
         "Room3 4.30 -> 3.48 cm (seed 0), room0 1.73 -> 2.68; the adjustment's end swings by "
         "a centimetre with the observations it is given (docs/results.md, session 37).",
     )
+    flow: int = option(
+        0,
+        "Also follow this many corners by optical flow (pyramidal Lucas-Kanade) through "
+        "every frame, observed at the keyframes (`FlowTracks`): a stretch that ORB finds no "
+        "corner in (room5's wall of smooth blobs) still links its keyframes. 0: ORB alone. "
+        "300, means over 3 seeds: room3 3.70 -> 1.78 cm, room5 9.60 -> 7.40, but room0 1.51 "
+        "-> 1.65 and 7-Scenes 3.84 -> 5.54 (docs/results.md, session 38).",
+    )
+    flow_realign: bool = option(
+        False,
+        "At each keyframe, align every corner the flow follows again with its patch in the "
+        "keyframe it started at (the frame-to-frame flow's drift does not add up: on "
+        "7-Scenes its tracks reproject 1.5 px from the true poses at the median instead of "
+        "2.8). 7-Scenes 5.54 -> 4.32 cm, the rooms worse (docs/results.md, session 38).",
+    )
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
     )
@@ -126,8 +141,8 @@ class BundleConfig:
             raise ValueError(
                 "bundle: features >= 8, neighbours >= 1, iters >= 0 and refit_iters >= 0 needed"
             )
-        if self.linked < 0 or self.every < 0:
-            raise ValueError("bundle: linked and every must be at least 0")
+        if self.linked < 0 or self.every < 0 or self.flow < 0:
+            raise ValueError("bundle: linked, every and flow must be at least 0")
         if self.views < 2:
             raise ValueError(f"bundle.views must be at least 2, got {self.views}")
         if min(self.outlier, self.turn_deg, self.direction, self.length) <= 0:
@@ -147,6 +162,15 @@ class Observations:
     @property
     def points(self) -> int:
         return int(self.p.max()) + 1 if len(self.p) else 0
+
+    def cat(self, other: Observations) -> Observations:
+        """These observations and `other`'s, its points numbered after these."""
+        return Observations(
+            torch.cat([self.k, other.k]),
+            torch.cat([self.p, other.p + self.points]),
+            torch.cat([self.uv, other.uv]),
+            torch.cat([self.sigma, other.sigma.to(self.sigma.dtype)]),
+        )
 
     def kept_rows(self, keep: torch.Tensor) -> torch.Tensor:
         """Which observations `select(keep)` keeps: those of the points all of whose
@@ -389,6 +413,152 @@ class FeatureTracks:
                 self.parent[self._root(start + jj)] = self._root(int(feature_of[qq]))
                 links += 1
         return links
+
+
+FLOW_WINDOW = 21
+"""Lucas-Kanade's window (pixels) and pyramid levels above the image."""
+FLOW_LEVELS = 3
+FLOW_CHECK = 0.3
+"""Pixels a corner followed forward and back again may land from where it started."""
+FLOW_REALIGN = 1.0
+"""Pixels a corner's alignment with its first keyframe (`BundleConfig.flow_realign`) may
+move it from where the flow put it before its track ends."""
+FLOW_SPACING = 8
+"""The least pixels between two corners followed."""
+FLOW_QUALITY = 0.001
+"""A new corner's least eigenvalue, as a share of the image's strongest (Shi-Tomasi)."""
+
+
+class FlowTracks:
+    """Corners followed by pyramidal Lucas-Kanade from frame to frame, observed at keyframes.
+
+    ORB needs corners a FAST test sees; a wall of smooth colour blobs has none (room5: 0 of
+    1500 for 25 keyframes), so no ORB track links the keyframes that look at it, and the
+    adjustment cannot hold the path's scale across it. Lucas-Kanade follows any patch with
+    gradient in two directions, and between consecutive frames the motion is small enough
+    to follow without a descriptor. New corners start at keyframes, away from those
+    followed; a corner is dropped where the flow back does not return it within
+    `FLOW_CHECK` pixels or it leaves the image. With `realign`, each corner is aligned
+    again at every keyframe with its patch in the keyframe it started at."""
+
+    def __init__(self, corners: int, realign: bool = False) -> None:
+        self.corners, self.realign = corners, realign
+        self.previous: np.ndarray | None = None
+        self.last = -1
+        self.points = np.zeros((0, 2), np.float32)  # the corners followed, in the last frame
+        self.ids = np.zeros(0, np.int64)  # their tracks
+        self.anchor = np.zeros(0, np.int64)  # the keyframe each started at
+        self.start = np.zeros((0, 2), np.float32)  # and where
+        self.images: dict[int, np.ndarray] = {}  # keyframes that followed corners started at
+        self.tracks = 0
+        self.seen: list[tuple[int, np.ndarray, np.ndarray]] = []  # keyframe, tracks, pixels
+
+    def add(self, index: int, grey: np.ndarray, keyframe: bool) -> None:
+        """Frame `index` (8-bit grey, newer than every one added): the corners followed
+        into it, and at a keyframe observed there with new ones started."""
+        if index <= self.last:
+            return
+        if self.previous is not None and len(self.points):
+            self._follow(grey)
+        if keyframe:
+            if self.realign:
+                self._realign(grey)
+            self._start(grey, index)
+            self.seen.append((index, self.ids.copy(), self.points.astype(np.float64)))
+        self.previous, self.last = grey, index
+
+    def _realign(self, grey: np.ndarray) -> None:
+        """Each corner followed, aligned again with its patch in the keyframe it started at
+        (from where the flow put it), so that the frame-to-frame flow's drift does not add
+        up over a track. Where the two disagree by `FLOW_REALIGN` pixels or more, the track
+        ends."""
+        keep = np.ones(len(self.points), bool)
+        window = (FLOW_WINDOW, FLOW_WINDOW)
+        for a in np.unique(self.anchor):
+            rows = np.flatnonzero(self.anchor == a)
+            guess = self.points[rows].reshape(-1, 1, 2).copy()
+            aligned, ok, _ = cv2.calcOpticalFlowPyrLK(
+                self.images[a],
+                grey,
+                self.start[rows].reshape(-1, 1, 2),
+                guess,
+                winSize=window,
+                maxLevel=1,
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            )
+            aligned = aligned.reshape(-1, 2)
+            near = np.linalg.norm(aligned - self.points[rows], axis=1) < FLOW_REALIGN
+            keep[rows] = (ok.ravel() == 1) & near
+            self.points[rows] = aligned
+        self._keep(keep)
+
+    def _follow(self, grey: np.ndarray) -> None:
+        window, before = (FLOW_WINDOW, FLOW_WINDOW), self.points.reshape(-1, 1, 2)
+        after, ok, _ = cv2.calcOpticalFlowPyrLK(
+            self.previous, grey, before, None, winSize=window, maxLevel=FLOW_LEVELS
+        )
+        back, ok_back, _ = cv2.calcOpticalFlowPyrLK(
+            grey, self.previous, after, None, winSize=window, maxLevel=FLOW_LEVELS
+        )
+        after = after.reshape(-1, 2)
+        height, width = grey.shape
+        keep = (
+            (ok.ravel() == 1)
+            & (ok_back.ravel() == 1)
+            & (np.linalg.norm((back - before).reshape(-1, 2), axis=1) < FLOW_CHECK)
+            & (after >= 0).all(1)
+            & (after[:, 0] <= width - 1)
+            & (after[:, 1] <= height - 1)
+        )
+        self.points = after
+        self._keep(keep)
+
+    def _keep(self, keep: np.ndarray) -> None:
+        self.points, self.ids = self.points[keep], self.ids[keep]
+        self.anchor, self.start = self.anchor[keep], self.start[keep]
+        self.images = {a: image for a, image in self.images.items() if a in self.anchor}
+
+    def _start(self, grey: np.ndarray, index: int) -> None:
+        wanted = self.corners - len(self.points)
+        if wanted <= 0:
+            return
+        free = np.full(grey.shape, 255, np.uint8)
+        for x, y in self.points:
+            cv2.circle(free, (int(round(x)), int(round(y))), FLOW_SPACING, 0, -1)
+        found = cv2.goodFeaturesToTrack(grey, wanted, FLOW_QUALITY, FLOW_SPACING, mask=free)
+        if found is None:
+            return
+        found = found.reshape(-1, 2).astype(np.float32)
+        self.points = np.concatenate([self.points, found])
+        self.ids = np.concatenate([self.ids, self.tracks + np.arange(len(found))])
+        self.anchor = np.concatenate([self.anchor, np.full(len(found), index)])
+        self.start = np.concatenate([self.start, found])
+        if self.realign:
+            self.images[index] = grey
+        self.tracks += len(found)
+
+    def observations(self, indices: list[int], views: int) -> Observations:
+        """The tracks seen by at least `views` of keyframes `indices` (pose `k` is
+        `indices[k]`), each observation's standard error one pixel."""
+        pose_of = {index: k for k, index in enumerate(indices)}
+        rows = [(pose_of[i], ids, uv) for i, ids, uv in self.seen if i in pose_of]
+        if not rows:
+            empty = torch.zeros(0, dtype=torch.long)
+            return Observations(
+                empty, empty, torch.zeros(0, 2, dtype=torch.float64), empty.double()
+            )
+        k = np.concatenate([np.full(len(ids), kk) for kk, ids, _ in rows])
+        track = np.concatenate([ids for _, ids, _ in rows])
+        uv = np.concatenate([pixels for _, _, pixels in rows])
+        _, inverse, size = np.unique(track, return_inverse=True, return_counts=True)
+        keep = size[inverse] >= views
+        _, p = np.unique(inverse[keep], return_inverse=True)
+        return Observations(
+            torch.from_numpy(k[keep]),
+            torch.from_numpy(p),
+            torch.from_numpy(uv[keep]),
+            torch.ones(int(keep.sum()), dtype=torch.float64),
+        )
 
 
 def triangulate(T_cw: torch.Tensor, K: torch.Tensor, obs: Observations) -> torch.Tensor:
@@ -703,6 +873,15 @@ def adjust(
     return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost)
 
 
+def observed(
+    tracks: FeatureTracks, flow: FlowTracks | None, indices: list[int], views: int
+) -> Observations:
+    """The ORB tracks and the flow's (`flow`, if any) seen by `views` of keyframes
+    `indices`, one set of points."""
+    obs = tracks.observations(indices, views)
+    return obs if flow is None else obs.cat(flow.observations(indices, views))
+
+
 def adjust_tracks(
     tracks: FeatureTracks,
     indices: list[int],
@@ -710,13 +889,14 @@ def adjust_tracks(
     K: torch.Tensor,
     cfg: BundleConfig,
     prior: Prior | None,
+    flow: FlowTracks | None = None,
 ) -> Adjusted:
     """Keyframes `indices` (poses `T_wc`, float64, path order) adjusted on their tracks seen
-    by `cfg.views` of them (`adjust`); with `cfg.guided`, the second pass on the tracks
-    carried at the first pass's poses to every keyframe that sees them
+    by `cfg.views` of them (`adjust`), the flow's too if given; with `cfg.guided`, the second
+    pass on the ORB tracks carried at the first pass's poses to every keyframe that sees them
     (`FeatureTracks.guide`). A second adjustment from the first one's end instead lands
     elsewhere (room0 seed 1: 1.25 -> 2.52 cm with no new observation; docs/results.md)."""
-    obs = tracks.observations(indices, cfg.views)
+    obs = observed(tracks, flow, indices, cfg.views)
     if not cfg.guided:
         return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
     linked = 0
@@ -724,7 +904,7 @@ def adjust_tracks(
     def guided(T_cw: torch.Tensor) -> Observations:
         nonlocal linked
         linked = tracks.guide(indices, T_cw, cfg.views, cfg.outlier)
-        return tracks.observations(indices, cfg.views)
+        return observed(tracks, flow, indices, cfg.views)
 
     result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided)
     return dataclasses.replace(result, guided=linked)

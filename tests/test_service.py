@@ -154,11 +154,14 @@ def test_a_sparse_map_travels_between_the_processes(sequence, tmp_path):
 
 def test_the_mappers_end_of_run_bundle_adjustment_reaches_the_trajectory(sequence, tmp_path):
     """`--bundle.enabled true` in the service: the mapper adjusts its keyframes when the
-    stream ends and publishes them; the trajectory written is the adjusted one."""
+    stream ends and publishes them; the trajectory written is the adjusted one. With
+    `--bundle.flow`, every frame the mapper gets feeds the flow's tracks."""
     out = tmp_path / "run"
     args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--bundle.enabled", "true"]
+    args += ["--bundle.flow", "100"]
     assert main(["run", str(sequence), "--out", str(out), *args]) == 0
-    assert "feature bundle adjustment of" in (out / "mapper.log").read_text()
+    adjusted = re.search(r"and (\d+) flow tracks", (out / "mapper.log").read_text())
+    assert adjusted is not None and int(adjusted.group(1)) > 10
     final, online = read_tum(out / "trajectory.txt"), read_tum(out / "trajectory_online.txt")
     assert len(final) == len(online) == FRAMES
     assert not np.allclose(final.poses, online.poses, atol=1e-6)

@@ -14,10 +14,12 @@ from dimslam.mapper.bundle import (
     BundleConfig,
     Features,
     FeatureTracks,
+    FlowTracks,
     Observations,
     adjust,
     adjust_tracks,
     bundle_adjust,
+    describe,
     grey_image,
     links,
     odometry_prior,
@@ -164,6 +166,69 @@ def test_tracks_link_the_features_of_a_rendered_walk(tmp_path):
     assert float(r.norm(dim=1).median()) < 0.5
 
 
+def _blobs(shift, seed=0):
+    """A 320x240 image of 60 smooth Gaussian blobs (no corner a FAST test sees), moved by
+    `shift` pixels."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform([-40, -40], [360, 280], (60, 2)) + shift
+    level = rng.uniform(0.2, 1.0, 60)
+    yy, xx = np.mgrid[0:240, 0:320].astype(np.float64)
+    image = np.zeros((240, 320))
+    for (cx, cy), a in zip(centres, level, strict=True):
+        image += a * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 14.0**2))
+    return np.clip(image / image.max() * 230 + 10, 0, 255).round().astype(np.uint8)
+
+
+@pytest.mark.parametrize("realign", [False, True])
+def test_flow_follows_smooth_blobs_that_orb_cannot_see(realign):
+    """Room5's wall, reduced: ORB finds almost nothing on smooth blobs, the flow follows
+    them from frame to frame to a hundredth of a pixel, observed at the keyframes (aligned
+    again with their first keyframe at each, or not)."""
+    step = np.array([1.3, 0.7])
+    assert len(describe(_blobs(0 * step), 1500).points) < 20
+    flow = FlowTracks(200, realign)
+    for i in range(9):
+        flow.add(i, _blobs(i * step), keyframe=i % 4 == 0)
+    flow.add(3, _blobs(20 * step), keyframe=True)  # older than the last: ignored
+    obs = flow.observations([0, 4, 8], 3)
+    assert obs.points > 100 and len(obs.k) == 3 * obs.points
+    assert torch.equal(obs.sigma, torch.ones(len(obs.k), dtype=torch.float64))
+    start = torch.zeros(obs.points, 2, dtype=torch.float64)
+    start[obs.p[obs.k == 0]] = obs.uv[obs.k == 0]
+    moved = obs.uv - start[obs.p]
+    error = (moved - obs.k[:, None] * 4 * torch.from_numpy(step)).norm(dim=1)
+    assert float(error.median()) < 0.05
+    assert flow.observations([0, 4], 3).points == 0  # seen by two keyframes only
+    assert flow.observations([100], 1).points == 0
+
+
+def test_flow_and_orb_tracks_are_one_set_of_points(tmp_path):
+    """The built-in scene's first frames, every one followed, every 3rd a keyframe: the
+    flow's tracks reproject within half a pixel at the true poses, and beside the ORB
+    tracks they are points of their own."""
+    out = tmp_path / "seq"
+    write_sequence(out, frames=10, width=320, height=240, noise=0.0)
+    reader = open_dataset(out)
+    frames = list(reader)
+    keyframes = frames[::3]
+    Kc = torch.from_numpy(reader.camera.K)
+    flow, tracks = FlowTracks(300), FeatureTracks(reader.camera.K, 1500, 8)
+    indices = [f.index for f in keyframes]
+    for f in frames:
+        flow.add(f.index, grey_image(f.rgb), keyframe=f.index in indices)
+        if f.index in indices:
+            tracks.add(f.index, grey_image(f.rgb))
+    followed, described = flow.observations(indices, 3), tracks.observations(indices, 3)
+    assert followed.points > 100
+    T_cw = pose.invert(torch.from_numpy(np.stack([f.T_wc for f in keyframes])))
+    r, _ = reprojection(T_cw, triangulate(T_cw, Kc, followed), Kc, followed)
+    assert float(r.norm(dim=1).median()) < 0.5
+    both = described.cat(followed)
+    assert both.points == described.points + followed.points
+    assert torch.equal(both.p[len(described.k) :], followed.p + described.points)
+    assert torch.equal(both.uv[len(described.k) :], followed.uv)
+
+
 def _short_tracks():
     """Features of the points every camera of `_scene` sees, beside 200 random ones per
     keyframe (indices 0, 10, ..., 70), joined over keyframes 0-2 only (and, for points
@@ -234,6 +299,8 @@ def test_settings_are_checked():
         BundleConfig(turn_deg=0)
     with pytest.raises(ValueError, match="neighbours"):
         BundleConfig(neighbours=0)
+    with pytest.raises(ValueError, match="flow"):
+        BundleConfig(flow=-1)
 
 
 def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch, capsys):
