@@ -192,6 +192,13 @@ def main() -> None:
         "(`bundle.flow`; 0: ORB alone)",
     )
     p.add_argument(
+        "--flow-near",
+        type=int,
+        default=defaults.flow_near,
+        help="the flow's observations only within this many keyframes of a step fewer than "
+        "--linked ORB points link (`bundle.flow_near`; -1: everywhere)",
+    )
+    p.add_argument(
         "--flow-realign",
         action=argparse.BooleanOptionalAction,
         default=defaults.flow_realign,
@@ -227,7 +234,19 @@ def main() -> None:
     indices = [at[k] for k in range(n)]  # keyframe k is frame indices[k] of the sequence
     for k in range(n):
         tracks.add(indices[k], images[k])
-    unjudged = observed(tracks, flow, indices, args.views)
+    turn_deg, direction = args.odometry or (defaults.turn_deg, defaults.direction)
+    config = BundleConfig(
+        turn_deg=turn_deg,
+        direction=direction,
+        views=args.views,
+        outlier=args.outlier,
+        iters=args.iters,
+        guided=args.guided,
+        length=args.length,
+        linked=args.linked,
+        flow_near=args.flow_near,
+    )
+    unjudged = observed(tracks, flow, indices, config)
     gt = np.stack([truth[k] for k in range(n)])
     run = torch.from_numpy(keyframes.poses)
     starts = {
@@ -265,26 +284,14 @@ def main() -> None:
         f"points two consecutive keyframes share: median {int(shared.median())}, "
         f"{int((shared < args.linked).sum())} of {n - 1} steps under --linked {args.linked}"
     )
-    prior = None
-    if args.odometry is not None:
-        turn_deg, direction = args.odometry
-        prior = prior_for(
-            run,
-            unjudged,
-            BundleConfig(
-                turn_deg=turn_deg, direction=direction, length=args.length, linked=args.linked
-            ),
-        )
+    prior = prior_for(run, unjudged, config) if args.odometry is not None else None
     print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
     blind = None
     for name in args.starts.split(","):
         T_wc = starts["run" if name == "blind" else name]
         T_cw = pose.invert(T_wc)
         if name == "blind":
-            cfg = BundleConfig(
-                views=args.views, outlier=args.outlier, iters=args.iters, guided=args.guided
-            )
-            result = adjust_tracks(tracks, indices, T_wc, K, cfg, prior, flow)
+            result = adjust_tracks(tracks, indices, T_wc, K, config, prior, flow)
             T_ba, cost, held = result.T_wc, result.cost, "-"
             blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
             if args.guided:

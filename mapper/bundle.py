@@ -125,6 +125,12 @@ class BundleConfig:
         "300, means over 3 seeds: room3 3.70 -> 1.78 cm, room5 9.60 -> 7.40, but room0 1.51 "
         "-> 1.65 and 7-Scenes 3.84 -> 5.54 (docs/results.md, session 38).",
     )
+    flow_near: int = option(
+        -1,
+        "Use the flow's observations only at the keyframes within this many of a step that "
+        "fewer than `linked` ORB points link (room5's wall; room0 and 7-Scenes have no such "
+        "step): -1, everywhere.",
+    )
     flow_realign: bool = option(
         False,
         "At each keyframe, align every corner the flow follows again with its patch in the "
@@ -143,6 +149,10 @@ class BundleConfig:
             )
         if self.linked < 0 or self.every < 0 or self.flow < 0:
             raise ValueError("bundle: linked, every and flow must be at least 0")
+        if self.flow_near < -1:
+            raise ValueError(
+                f"bundle.flow_near must be -1 (everywhere) or more, got {self.flow_near}"
+            )
         if self.views < 2:
             raise ValueError(f"bundle.views must be at least 2, got {self.views}")
         if min(self.outlier, self.turn_deg, self.direction, self.length) <= 0:
@@ -874,12 +884,28 @@ def adjust(
 
 
 def observed(
-    tracks: FeatureTracks, flow: FlowTracks | None, indices: list[int], views: int
+    tracks: FeatureTracks,
+    flow: FlowTracks | None,
+    indices: list[int],
+    cfg: BundleConfig,
 ) -> Observations:
-    """The ORB tracks and the flow's (`flow`, if any) seen by `views` of keyframes
-    `indices`, one set of points."""
-    obs = tracks.observations(indices, views)
-    return obs if flow is None else obs.cat(flow.observations(indices, views))
+    """The ORB tracks and the flow's (`flow`, if any) seen by `cfg.views` of keyframes
+    `indices`, one set of points; with `cfg.flow_near`, the flow's observations only at the
+    keyframes within that many of a step that fewer than `cfg.linked` ORB points link."""
+    obs = tracks.observations(indices, cfg.views)
+    if flow is None:
+        return obs
+    followed = flow.observations(indices, cfg.views)
+    if cfg.flow_near < 0:
+        return obs.cat(followed)
+    near = torch.zeros(len(indices), dtype=torch.bool)
+    for step in torch.nonzero(links(obs, len(indices)) < cfg.linked)[:, 0].tolist():
+        near[max(0, step - cfg.flow_near) : step + 2 + cfg.flow_near] = True
+    keep = near[followed.k]
+    seen = torch.bincount(followed.p[keep], minlength=followed.points)
+    keep &= (seen >= cfg.views)[followed.p]
+    _, p = torch.unique(followed.p[keep], return_inverse=True)
+    return obs.cat(Observations(followed.k[keep], p, followed.uv[keep], followed.sigma[keep]))
 
 
 def adjust_tracks(
@@ -896,7 +922,7 @@ def adjust_tracks(
     pass on the ORB tracks carried at the first pass's poses to every keyframe that sees them
     (`FeatureTracks.guide`). A second adjustment from the first one's end instead lands
     elsewhere (room0 seed 1: 1.25 -> 2.52 cm with no new observation; docs/results.md)."""
-    obs = observed(tracks, flow, indices, cfg.views)
+    obs = observed(tracks, flow, indices, cfg)
     if not cfg.guided:
         return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
     linked = 0
@@ -904,7 +930,7 @@ def adjust_tracks(
     def guided(T_cw: torch.Tensor) -> Observations:
         nonlocal linked
         linked = tracks.guide(indices, T_cw, cfg.views, cfg.outlier)
-        return observed(tracks, flow, indices, cfg.views)
+        return observed(tracks, flow, indices, cfg)
 
     result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided)
     return dataclasses.replace(result, guided=linked)

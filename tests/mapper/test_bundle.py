@@ -22,6 +22,7 @@ from dimslam.mapper.bundle import (
     describe,
     grey_image,
     links,
+    observed,
     odometry_prior,
     prior_for,
     reprojection,
@@ -229,6 +230,31 @@ def test_flow_and_orb_tracks_are_one_set_of_points(tmp_path):
     assert torch.equal(both.uv[len(described.k) :], followed.uv)
 
 
+def test_flow_near_keeps_the_flows_observations_about_steps_orb_does_not_link():
+    """Eight keyframes whose ORB features chain over 0-3 and over 4-7 but not across: with
+    `flow_near 1`, the flow's ten tracks are observed at keyframes 2-5 only, beside every
+    ORB observation; with -1 everywhere; an adjustment without a weak step gets no flow."""
+    tracks = FeatureTracks(K.numpy(), 100, 8)
+    for index in range(8):
+        tracks.insert(index, Features(np.zeros((20, 2)), np.ones(20), None))
+    for a in [0, 1, 2, 4, 5, 6]:
+        for i in range(20):
+            tracks.join(a + 1, i, a, i)
+    flow = FlowTracks(10)
+    flow.seen = [(index, np.arange(10), np.zeros((10, 2))) for index in range(8)]
+    indices = list(range(8))
+    orb = tracks.observations(indices, 3)
+    assert links(orb, 8).tolist() == [20, 20, 20, 0, 20, 20, 20]
+    near = observed(tracks, flow, indices, BundleConfig(flow=10, flow_near=1))
+    added = near.p >= orb.points
+    assert (~added).sum() == len(orb.k) == 160
+    assert sorted(set(near.k[added].tolist())) == [2, 3, 4, 5] and added.sum() == 40
+    everywhere = observed(tracks, flow, indices, BundleConfig(flow=10))
+    assert len(everywhere.k) == 160 + 80
+    linked = observed(tracks, flow, [0, 1, 2, 3], BundleConfig(flow=10, flow_near=1))
+    assert len(linked.k) == 4 * 20
+
+
 def _short_tracks():
     """Features of the points every camera of `_scene` sees, beside 200 random ones per
     keyframe (indices 0, 10, ..., 70), joined over keyframes 0-2 only (and, for points
@@ -301,6 +327,8 @@ def test_settings_are_checked():
         BundleConfig(neighbours=0)
     with pytest.raises(ValueError, match="flow"):
         BundleConfig(flow=-1)
+    with pytest.raises(ValueError, match="flow_near"):
+        BundleConfig(flow_near=-2)
 
 
 def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch, capsys):
