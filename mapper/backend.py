@@ -43,8 +43,8 @@ from dimslam.mapper.bundle import (
     FlowTracks,
     adjust_tracks,
     grey_image,
-    observed,
     prior_for,
+    with_flow,
 )
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
@@ -349,7 +349,8 @@ class BackEnd:
         self.adjusted_at = len(self.tracks.keyframes)
         started = time.perf_counter()
         indices = [kf.index for kf in keyframes]
-        obs = observed(self.tracks, self.flow, indices, cfg)
+        described = self.tracks.observations(indices, cfg.views)
+        obs = with_flow(described, self.flow, indices, cfg)
         T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])
         K = torch.from_numpy(self.camera.K)
         prior = prior_for(T_wc, obs, cfg)
@@ -358,15 +359,14 @@ class BackEnd:
         # out turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
         moved = self._move(keyframes, sim3.from_pose(T_new, scales))
-        followed = obs.points - self.tracks.observations(indices, cfg.views).points
         log.info(
             "feature bundle adjustment of %d keyframes: %d points (of %d ORB tracks and %d "
             "flow tracks), %d observations (%d by guided matching), cost %.1f; keyframes "
             "moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
             len(keyframes),
             result.points,
-            obs.points - followed,
-            followed,
+            described.points,
+            obs.points - described.points,
             result.observations,
             result.guided,
             result.cost,

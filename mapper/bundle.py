@@ -890,9 +890,17 @@ def observed(
     cfg: BundleConfig,
 ) -> Observations:
     """The ORB tracks and the flow's (`flow`, if any) seen by `cfg.views` of keyframes
-    `indices`, one set of points; with `cfg.flow_near`, the flow's observations only at the
-    keyframes within that many of a step that fewer than `cfg.linked` ORB points link."""
-    obs = tracks.observations(indices, cfg.views)
+    `indices`, one set of points (`with_flow`)."""
+    return with_flow(tracks.observations(indices, cfg.views), flow, indices, cfg)
+
+
+def with_flow(
+    obs: Observations, flow: FlowTracks | None, indices: list[int], cfg: BundleConfig
+) -> Observations:
+    """The ORB tracks `obs` of keyframes `indices` and the flow's (`flow`, if any) seen by
+    `cfg.views` of them, numbered after them; with `cfg.flow_near`, the flow's observations
+    only at the keyframes within that many of a step that fewer than `cfg.linked` ORB
+    points link."""
     if flow is None:
         return obs
     followed = flow.observations(indices, cfg.views)
