@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from walls import CAM, small_mapper, textured_wall_image
 
 from dimslam.common.geometry import pose
@@ -15,7 +16,9 @@ from dimslam.common.optim.window import FrameState
 from dimslam.mapper import mapper as mapper_module
 from dimslam.mapper.mapper import MESH_MAP_WEIGHT, MapperConfig
 from dimslam.mapper.stereo import (
+    PATCH,
     WIDTH,
+    _box,
     agreeing_depths,
     consistent_depths,
     plane_sweep,
@@ -33,6 +36,14 @@ def views():
     images = [torch.from_numpy(rgb).float() for rgb, _ in rendered]
     poses = [torch.from_numpy(T).float() for T in path]
     return camera, images, poses, rendered[5][1]
+
+
+@pytest.mark.parametrize("n", [1, 48])
+def test_the_patch_mean_is_poolings_at_the_edges_too(n):
+    """OpenCV's running sums (`_box` on a CPU) against torch's pooling over the pixels inside."""
+    x = torch.rand(n, 120, 160, generator=torch.Generator().manual_seed(n))
+    pooled = F.avg_pool2d(x[:, None], PATCH, stride=1, padding=PATCH // 2, count_include_pad=False)
+    assert torch.allclose(_box(x), pooled[:, 0], atol=1e-6)
 
 
 def _sweep(views, sources):
