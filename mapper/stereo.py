@@ -89,8 +89,10 @@ def _box(x: torch.Tensor) -> torch.Tensor:
     """Mean over the `PATCH` x `PATCH` neighbourhoods of `(N, H, W)` images (same size;
     at the edges over the pixels inside). On a CPU by OpenCV's running sums, all images at
     once as the channels of one: several times faster than torch's pooling, which sums
-    every patch afresh and which a GPU keeps (docs/benchmarks.md, "Mesh extraction")."""
-    if x.device.type != "cpu" or x.dtype != torch.float32 or len(x) > CV_CHANNELS:
+    every patch afresh and which a GPU (or a gradient) keeps (docs/benchmarks.md, "Mesh
+    extraction")."""
+    opencv = x.device.type == "cpu" and x.dtype == torch.float32 and len(x) <= CV_CHANNELS
+    if not opencv or x.requires_grad:
         pooled = F.avg_pool2d(
             x[:, None], PATCH, stride=1, padding=PATCH // 2, count_include_pad=False
         )

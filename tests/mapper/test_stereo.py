@@ -44,6 +44,9 @@ def test_the_patch_mean_is_poolings_at_the_edges_too(n):
     x = torch.rand(n, 120, 160, generator=torch.Generator().manual_seed(n))
     pooled = F.avg_pool2d(x[:, None], PATCH, stride=1, padding=PATCH // 2, count_include_pad=False)
     assert torch.allclose(_box(x), pooled[:, 0], atol=1e-6)
+    x.requires_grad_()
+    _box(x).sum().backward()  # pooling, which has a gradient, where one is wanted
+    assert x.grad is not None and x.grad.shape == x.shape
 
 
 def _sweep(views, sources):
