@@ -189,12 +189,15 @@ class Observations:
         bad[self.p[~keep]] = True
         return ~bad[self.p]
 
+    def rows(self, keep: torch.Tensor) -> Observations:
+        """The observations `keep`, the points that keep any numbered again from 0."""
+        _, p = torch.unique(self.p[keep], return_inverse=True)
+        return Observations(self.k[keep], p, self.uv[keep], self.sigma[keep])
+
     def select(self, keep: torch.Tensor) -> Observations:
         """The observations `keep` of the points all of whose observations are kept, with
         the points numbered again from 0."""
-        ok = self.kept_rows(keep)
-        _, p = torch.unique(self.p[ok], return_inverse=True)
-        return Observations(self.k[ok], p, self.uv[ok], self.sigma[ok])
+        return self.rows(self.kept_rows(keep))
 
 
 def grey_image(rgb: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -912,8 +915,7 @@ def with_flow(
     keep = near[followed.k]
     seen = torch.bincount(followed.p[keep], minlength=followed.points)
     keep &= (seen >= cfg.views)[followed.p]
-    _, p = torch.unique(followed.p[keep], return_inverse=True)
-    return obs.cat(Observations(followed.k[keep], p, followed.uv[keep], followed.sigma[keep]))
+    return obs.cat(followed.rows(keep))
 
 
 def adjust_tracks(
