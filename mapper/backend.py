@@ -7,8 +7,10 @@ drivers (`common/slam.py` in one process, `mapper/service.py` as a process of it
 2. Every later one is followed by a mapping round on the newest `every` frames plus the
    keyframes overlapping the newest (`Mapper.map`). Frames handed over in between rounds
    (a mapper that fell behind, a stop) keep their tracked poses.
-3. After each round, every non-keyframe of the round records its pose relative to the
-   keyframe before it, so the final trajectory follows later refinements of that keyframe.
+3. After each round, every non-keyframe of the round, and every other one received since the
+   previous round, records its pose relative to the keyframe before it, so the final
+   trajectory follows later refinements of that keyframe; the new keyframes join the
+   feature tracks of the bundle adjustment.
    Every `mapper.global_every` rounds a global refinement round follows (`refine_global`):
    a window about a random keyframe, anywhere on the path, with its overlapping keyframes,
    poses and map optimized together.
@@ -137,6 +139,7 @@ class BackEnd:
             else None
         )
         self.adjusted_at = 0  # keyframes with features at the last adjustment
+        self.taken = 0  # frames (of `frames`, in order) anchored and described so far
 
     @property
     def field(self):
@@ -177,12 +180,13 @@ class BackEnd:
             window = self.frames[-self.cfg.mapper.every :]
             self._refine_keyframes(window)
             result = self.mapper.map(window, self.keyframes)
-        self._anchor(window)
+        fresh = self._fresh(window)
+        self._anchor(fresh)
         every = self.cfg.mapper.global_every
         if every > 0 and self.rounds > 0 and self.rounds % every == 0:
             self.refine_global()
         self._close_loops(window)
-        self._describe(window)
+        self._describe(fresh)
         every = self.cfg.bundle.every
         if self.tracks is not None and every > 0:
             if len(self.tracks.keyframes) - self.adjusted_at >= every:
@@ -191,6 +195,16 @@ class BackEnd:
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
         return result
+
+    def _fresh(self, window: list[FrameState]) -> list[FrameState]:
+        """The round's `window` with every frame received since the previous round, in path
+        order. A mapper that fell behind a live stream maps only the newest frames of its
+        backlog, but the others still anchor to their keyframes (so that they follow later
+        corrections) and join the feature tracks (so that the bundle adjustment holds their
+        keyframes): without that, a live run's adjustment had 8 of its 73 keyframes."""
+        new, self.taken = self.frames[self.taken :], len(self.frames)
+        held = {id(f) for f in window}
+        return sorted([*window, *(f for f in new if id(f) not in held)], key=lambda f: f.index)
 
     def _refine_keyframes(self, window: list[FrameState]) -> None:
         """`mapper.refine_keyframes` steps of the tracking window objective on each keyframe
@@ -315,19 +329,22 @@ class BackEnd:
         map changed)."""
         if not self.initialized:
             return False
+        rest = self._fresh([])  # frames kept at a stop without a round
+        self._anchor(rest)
+        self._describe(rest)
         if self.tracks is not None:
             self.adjust_keyframes()
         if self.cfg.mapper.post_iters > 0:
             self.mapper.post_optimize(self.keyframes)
         return self.tracks is not None or self.cfg.mapper.post_iters > 0
 
-    def _describe(self, window: list[FrameState]) -> None:
-        """Add the window's new keyframes to the feature tracks (`bundle.enabled`), and
-        every new frame to the flow's (`bundle.flow`)."""
+    def _describe(self, frames: list[FrameState]) -> None:
+        """Add the new keyframes among `frames` (path order) to the feature tracks
+        (`bundle.enabled`), and every new frame to the flow's (`bundle.flow`)."""
         if self.tracks is None:
             return
         newest = max(self.tracks.keyframes, default=-1)
-        for f in window:
+        for f in frames:
             if f.rgb is None:
                 continue
             grey = grey_image(f.rgb) if f.keyframe or self.flow is not None else None
@@ -384,6 +401,7 @@ class BackEnd:
     def reanchor(self) -> None:
         """Anchor every non-keyframe held to the keyframe before it (a resumed map)."""
         self._anchor(self.frames)
+        self.taken = len(self.frames)
 
     def _anchor(self, frames: list[FrameState]) -> None:
         """Record each non-keyframe's pose relative to the keyframe before it."""

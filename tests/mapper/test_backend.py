@@ -142,14 +142,15 @@ def test_a_keyframe_takes_the_refined_end_from_the_motion_where_the_two_ends_dif
     assert all(torch.equal(f.T_wc, T) for f, T in zip(frames, kept, strict=True))
 
 
-def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follow(tmp_path):
+def _drifted(tmp_path, **settings: str):
     """The built-in scene's first 22 frames, keyframes every 3rd, tracked with each step 3 %
-    shorter than the one before (a scale drift: the last is half its length): the
-    adjustment brings the keyframes' steps back to one scale, and the frames anchored to
-    them follow."""
+    shorter than the one before (a scale drift: the last is half its length), and a back end
+    with the bundle adjustment (`settings` on top of the cpu preset)."""
     write_sequence(tmp_path / "seq", frames=22, width=320, height=240, noise=0.0)
     reader = open_dataset(tmp_path / "seq")
-    cfg = apply_overrides(PRESETS["cpu"], {"bundle.enabled": "true", "bundle.refit_iters": "0"})
+    cfg = apply_overrides(
+        PRESETS["cpu"], {"bundle.enabled": "true", "bundle.refit_iters": "0", **settings}
+    )
     back = BackEnd(cfg, reader.camera, torch.device("cpu"), torch.Generator())
     truth = torch.stack([torch.from_numpy(f.T_wc) for f in reader]).float()
     drifted = truth.clone()
@@ -162,11 +163,11 @@ def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follo
         )
         for f in reader
     ]
-    back.add(frames)
-    back.initialized = True
-    back._anchor(frames)
-    back._describe(frames)
-    back.adjust_keyframes()
+    return back, frames, truth, drifted
+
+
+def _assert_one_scale(back, truth, drifted):
+    """The keyframes' steps back at one scale, and the frames between them too."""
 
     def steps(T):
         return (T[3::3, :3, 3] - T[:-3:3, :3, 3]).norm(dim=1)
@@ -176,5 +177,32 @@ def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follo
     drift = steps(drifted) / steps(truth)
     assert drift.max() / drift.min() > 1.5  # what the adjustment starts from
     assert ratio.max() / ratio.min() < 1.05  # one scale along the whole path
-    every = (final[1:, :3, 3] - final[:-1, :3, 3]).norm(dim=1) / true_steps.norm(dim=1)
+    true_steps = (truth[1:, :3, 3] - truth[:-1, :3, 3]).norm(dim=1)
+    every = (final[1:, :3, 3] - final[:-1, :3, 3]).norm(dim=1) / true_steps
     assert every.std() < 0.1 * every.mean()  # the frames between keyframes too
+
+
+def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follow(tmp_path):
+    back, frames, truth, drifted = _drifted(tmp_path)
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    back._describe(frames)
+    back.adjust_keyframes()
+    _assert_one_scale(back, truth, drifted)
+
+
+def test_a_mapper_behind_the_stream_still_adjusts_and_anchors_every_frame_it_received(tmp_path):
+    """A mapper that fell behind (all 22 frames in one hand-over) maps only the newest
+    `mapper.every`; the frames before them still join the adjustment and follow it."""
+    back, frames, truth, drifted = _drifted(
+        tmp_path, **{"mapper.iters": "1", "mapper.pose_lr": "0"}
+    )
+    back.add(frames)
+    back.initialized = True  # as after the initialization on frames before these
+    result = back.step()
+    assert len(result.window) < len(frames)  # the round mapped the newest frames only
+    assert sorted(back.tracks.keyframes) == list(range(0, 22, 3))
+    assert set(back.anchors) == {i for i in range(22) if i % 3}
+    back.finish()
+    _assert_one_scale(back, truth, drifted)
