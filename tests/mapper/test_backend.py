@@ -192,17 +192,22 @@ def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follo
     _assert_one_scale(back, truth, drifted)
 
 
-def test_a_mapper_behind_the_stream_still_adjusts_and_anchors_every_frame_it_received(tmp_path):
-    """A mapper that fell behind (all 22 frames in one hand-over) maps only the newest
-    `mapper.every`; the frames before them still join the adjustment and follow it."""
-    back, frames, truth, drifted = _drifted(
-        tmp_path, **{"mapper.iters": "1", "mapper.pose_lr": "0"}
-    )
-    back.add(frames)
+def test_frames_a_round_did_not_map_follow_their_keyframes(tmp_path):
+    """A mapper that fell behind (17 frames in one hand-over) maps only the newest
+    `mapper.every`, and a stop leaves the last frames without a round: all of them still
+    anchor to their keyframes, so that a later correction of a keyframe carries them."""
+    back, frames, _, _ = _drifted(tmp_path, **{"mapper.iters": "1", "mapper.pose_lr": "0"})
+    back.add(frames[:17])
     back.initialized = True  # as after the initialization on frames before these
     result = back.step()
-    assert len(result.window) < len(frames)  # the round mapped the newest frames only
-    assert sorted(back.tracks.keyframes) == list(range(0, 22, 3))
-    assert set(back.anchors) == {i for i in range(22) if i % 3}
+    assert result.window[-5:] == (12, 13, 14, 15, 16)
+    assert set(back.anchors) == {i for i in range(17) if i % 3}
+    back.add(frames[17:])  # handed over at a stop: no round
     back.finish()
-    _assert_one_scale(back, truth, drifted)
+    assert set(back.anchors) == {i for i in range(22) if i % 3}
+    before = torch.from_numpy(back.trajectory().poses)
+    frames[6].T_wc = pose.compose(moved(0.1), frames[6].T_wc)  # a correction moves keyframe 6
+    frames[18].T_wc = pose.compose(moved(0.1), frames[18].T_wc)  # and keyframe 18
+    shift = torch.from_numpy(back.trajectory().poses)[:, 0, 3] - before[:, 0, 3]
+    assert shift[[6, 7, 8, 18, 19, 20]].tolist() == pytest.approx([0.1] * 6, abs=1e-5)
+    assert shift[[5, 9, 17, 21]].abs().max() < 1e-6
