@@ -180,8 +180,7 @@ class BackEnd:
             window = self.frames[-self.cfg.mapper.every :]
             self._refine_keyframes(window)
             result = self.mapper.map(window, self.keyframes)
-        fresh = self._fresh(window)
-        self._anchor(fresh)
+        self._anchor(self._fresh(window))
         every = self.cfg.mapper.global_every
         if every > 0 and self.rounds > 0 and self.rounds % every == 0:
             self.refine_global()
@@ -197,16 +196,16 @@ class BackEnd:
         return result
 
     def _fresh(self, window: list[FrameState]) -> list[FrameState]:
-        """The round's `window` with every frame received since the previous round, in path
-        order. A mapper that fell behind a live stream maps only the newest frames of its
-        backlog, but the others still anchor to their keyframes, so that they follow later
-        corrections. They do not join the feature tracks: describing a keyframe costs
-        100-200 ms, a live backlog holds dozens (room0 at 10 FPS, one run: rounds of 18.3 s
-        against 12.3 s without, and the adjustment of all 55 keyframes moved them 8 mm at the
-        median)."""
-        new, self.taken = self.frames[self.taken :], len(self.frames)
-        held = {id(f) for f in window}
-        return sorted([*window, *(f for f in new if id(f) not in held)], key=lambda f: f.index)
+        """The round's `window` (the newest frames held) with every frame received since the
+        previous round: the frames from the older of the two on. A mapper that fell behind a
+        live stream maps only the newest frames of its backlog, but the others still anchor
+        to their keyframes, so that they follow later corrections. They do not join the
+        feature tracks: describing a keyframe costs 100-200 ms, a live backlog holds dozens
+        (room0 at 10 FPS, one run: rounds of 18.3 s against 12.3 s without, and the
+        adjustment of all 55 keyframes moved them 8 mm at the median)."""
+        start = min(self.taken, len(self.frames) - len(window))
+        self.taken = len(self.frames)
+        return self.frames[start:]
 
     def _refine_keyframes(self, window: list[FrameState]) -> None:
         """`mapper.refine_keyframes` steps of the tracking window objective on each keyframe
