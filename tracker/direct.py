@@ -390,8 +390,9 @@ class DirectTracker:
         them, at its start) only the points enough of them see count (`_seen`).
 
         Raises:
-            TrackingLost: the solution is non-finite, sees too few points, jumped too far
-                from the start, or leaves the residual high.
+            TrackingLost: too few points to solve against, or the solution is non-finite,
+                sees too few points, jumped too far from the start, or leaves the residual
+                high.
         """
         seen = texture(images[0]) / max(statistics.fmean(r.texture for r in refs), 1e-12)
         if seen < MIN_TEXTURE:
@@ -400,6 +401,10 @@ class DirectTracker:
                 "or dark)"
             )
         pts = self._points(refs, views)
+        if len(pts.p_w) < MIN_POINTS:  # nothing to solve against (a level's mean would be 0/0)
+            raise TrackingLost(
+                f"frame {frame.index}: {len(pts.p_w)} points seen by enough of the window"
+            )
         ab = self._brightness(refs)
         T_cw = np.linalg.inv(frame.T_wc.double().cpu().numpy())
         anchor = T_cw.copy()

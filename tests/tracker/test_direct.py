@@ -3,6 +3,7 @@ changes, says when it is lost, and decides keyframes without rendering."""
 
 import dataclasses
 import math
+import warnings
 
 import pytest
 import torch
@@ -271,3 +272,16 @@ def test_a_frame_counts_as_fitting_when_one_reference_fits_it():
     valid[:] = False
     valid[:40] = True  # no reference has enough: all points together
     assert _best_fit(inlier, valid, ref_of, 2) == pytest.approx(24 / 40)
+
+
+def test_a_window_that_sees_none_of_the_points_loses_the_frame_without_a_solve():
+    # Every frame of the window looks the other way: no point is seen by enough of them.
+    away = pose.compose(pose.exp_se3(torch.tensor([0.0, 0.0, 0.0, 0.0, math.pi, 0.0])), TRUTH)
+    t = solver(min_views=1)
+    t.map_changed(wall, [keyframe(KF)], version=1)
+    window = [FrameState(i, 0.0, None, away.clone()) for i in (1, 2, 3)]
+    frame = FrameState(4, 0.0, textured_wall_image(TRUTH, CAM), TRUTH.clone())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no 0 / 0 on an empty level
+        with pytest.raises(TrackingLost, match="0 points seen by enough of the window"):
+            t.track(wall, [*window, frame], [])
