@@ -8,8 +8,11 @@ The service runs on the built-in scene as in benchmarks/faults.py (its `Harness`
 lockstep camera at `--rate` frames per second and at most 10 frames ahead of the poses,
 router, mapper, tracker and camera as zenoh clients of the router on loopback). Once the
 first pose is out (the stream exists: its first frame fixed the camera), a second harness
-session publishes `--messages` hostile messages on each subscribed key, paced by the run's
-progress so that they are all sent by 80 % of the frames, round robin over the generators:
+session publishes `--messages` hostile messages on each subscribed key, paced by the poses
+so that they are all sent `HOLD_MARGIN` poses before the camera may publish its last frame
+(at 60 frames: by pose 46), round robin over the generators. A fuzzer still behind by then
+holds the camera (SIGSTOP, `HOLD_MAX_S` at most) and sends the rest at once, so that a busy
+machine does not end the stream with messages unsent (the time held is reported):
 
 - random: random bytes (sometimes behind a msgpack map header);
 - truncated: a prefix of a message captured on the key;
@@ -41,9 +44,9 @@ mostly the zenoh shared-memory pages of the processes it receives from), and RSS
 the process has trimmed its heap, which is what it keeps; per key the
 messages sent per generator; and the final trajectory's ATE against a clean run with the
 same seed (`--messages 0`), unless `--no-clean`. The clean run's RSS is taken at the same
-points (first pose, 80 % of the frames posed, settled): a tracker's grows with the map and
-keyframes it receives, so its settled RSS beyond the clean run's is what the hostile
-messages cost it.
+points (first pose, the pose by which every message is sent, settled): a tracker's grows
+with the map and keyframes it receives, so its settled RSS beyond the clean run's is what
+the hostile messages cost it.
 """
 
 from __future__ import annotations
@@ -93,8 +96,12 @@ END_WAIT_S = 120.0
 """How long the processes have to finish (mapper: final round and outputs) after the end."""
 MATCH_WAIT_S = 30.0
 """How long the fuzzer waits for its publishers to see a subscriber (a routed declaration)."""
-DONE_FRACTION = 0.8
-"""Every message is sent by the time this fraction of the frames has a pose."""
+HOLD_MARGIN = 3
+"""Poses between the one by which every message is sent and the first that lets the
+camera publish its last frame (and so end the stream)."""
+HOLD_MAX_S = 4.0
+"""The longest the camera is held: well inside zenoh's 10 s lease (the router would drop
+its session, and the frames it sends meanwhile would go unanswered)."""
 SETTLE_S = 2 * HEAP_TRIM_S + 5
 """How long after the flood RSS is taken again: what the process keeps, not what it holds."""
 _REJECT_LINE = re.compile(r"rejected (?:a message|\d+ more messages?) on (\S+?)[ :(]")
@@ -391,9 +398,17 @@ def _growth(start: float | None, end: float | None) -> float | None:
 class Fuzzer:
     """Sends the hostile messages from a session of its own, paced by the poses seen."""
 
-    def __init__(self, h: Harness, keys: Keys, bases: Bases, messages: int, frames: int) -> None:
+    def __init__(
+        self, h: Harness, keys: Keys, bases: Bases, messages: int, frames: int, done_at: int
+    ) -> None:
         self.h, self.keys, self.bases = h, keys, bases
-        self.messages, self.frames = messages, frames
+        self.messages, self.frames, self.done_at = messages, frames, done_at
+        self.lock = threading.Lock()
+        self.done = messages == 0  # a clean run holds nothing
+        self.hurry = False  # past `done_at`: the rest goes out at once
+        self.held_since: float | None = None
+        self.held_s = 0.0
+        self._unhold_timer: threading.Timer | None = None
         self.sent = {k: Counter() for k in TARGETS}
         self.still_valid = {k: Counter() for k in TARGETS}
         self.decoded = {k: Counter() for k in TARGETS}
@@ -404,8 +419,38 @@ class Fuzzer:
     def _allowed(self, start: int) -> int:
         """Messages (over all keys) that may be out by now."""
         total = self.messages * len(TARGETS)
-        span = max(1.0, DONE_FRACTION * self.frames - start)
+        if self.hurry:
+            return total
+        span = max(1.0, self.done_at - start)
         return int(total * min(1.0, (self.h.count - start + 1) / span))
+
+    def hold_if_behind(self, highest_pose: int) -> None:
+        """Called on every pose: from `done_at` on, a fuzzer not done stops the camera for at
+        most `HOLD_MAX_S` and sends the rest at once."""
+        with self.lock:
+            if self.done or self.hurry or highest_pose < self.done_at:
+                return
+            self.hurry = True
+            self.h.procs["camera"].send_signal(signal.SIGSTOP)
+            self.held_since = time.monotonic()
+            self._unhold_timer = threading.Timer(HOLD_MAX_S, self._unhold)
+            self._unhold_timer.start()
+        with self.h.changed:
+            self.h.changed.notify_all()
+
+    def _unhold(self) -> None:
+        with self.lock:
+            if self.held_since is not None:
+                self.h.procs["camera"].send_signal(signal.SIGCONT)
+                self.held_s = time.monotonic() - self.held_since
+                self.held_since = None
+
+    def _release(self) -> None:
+        with self.lock:
+            self.done = True
+            if self._unhold_timer is not None:
+                self._unhold_timer.cancel()
+        self._unhold()
 
     def _sample_rss(self) -> None:
         for role, mb in memory_mb(self.h.procs).items():
@@ -413,6 +458,12 @@ class Fuzzer:
                 self.peak_rss[role] = max(self.peak_rss.get(role, 0.0), mb)
 
     def run(self, session: zenoh.Session) -> None:
+        try:
+            self._flood(session)
+        finally:
+            self._release()
+
+    def _flood(self, session: zenoh.Session) -> None:
         started = time.monotonic()
         pubs = {
             k: session.declare_publisher(
@@ -497,14 +548,16 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
     shutil.rmtree(folder, ignore_errors=True)  # the harness appends to the logs it finds
     # Never more frames ahead of the poses than the initialization needs: the frames after it
     # come at `rate`, not in one burst when the map exists, and the fuzzing spans them.
-    ahead = str(PRESETS["tiny"].mapper.init_frames + 2)
-    camera = ["--lockstep", "--rate", str(rate), "--ahead", ahead]
+    ahead = PRESETS["tiny"].mapper.init_frames + 2
+    camera = ["--lockstep", "--rate", str(rate), "--ahead", str(ahead)]
+    # The camera publishes its last frame once it has the pose `frames - 1 - ahead`.
+    done_at = max(1, frames - 1 - ahead - HOLD_MARGIN)
     # Bounded staleness, as `dimslam run` (common/net/launch.py): the ATE then does not
     # depend on when the mapper's rounds end, which a machine busy with the fuzzing changes.
     h = Harness(name, scene, folder, {"camera": camera, "tracker": ["--map-lag", "1"]})
     stream_s = frames / rate if rate > 0 else 0.0  # how long the camera takes, at least
     bases = Bases()
-    fuzzer = Fuzzer(h, Keys(h.session_name), bases, messages, frames)
+    fuzzer = Fuzzer(h, Keys(h.session_name), bases, messages, frames, done_at)
     seen: set[int] = set()
     rss_start: dict[str, float | None] = {}
     rss_end: dict[str, float | None] = {}
@@ -525,6 +578,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
             seen.add(msg.seq)
             with bases.lock:
                 bases.highest_pose = max(bases.highest_pose, msg.seq)
+            fuzzer.hold_if_behind(msg.seq)
         with h.changed:
             h.count = len(seen)
             h.changed.notify_all()
@@ -555,12 +609,12 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
                 if fuzzer.error:
                     raise RuntimeError(fuzzer.error)
             else:  # the clean run's end figures at the point where the fuzzing would end
-                h.wait_for_poses(int(DONE_FRACTION * frames), stream_s + WAIT_S)
+                h.wait_for_poses(done_at, stream_s + WAIT_S)
             rss_end, anon_end = memory_mb(h.procs), memory_mb(h.procs, "RssAnon")
             # What stays: the heaps are trimmed every HEAP_TRIM_S (service.trim_heap), and
             # the messages of the flood's last seconds are still in them at its end. Only
             # where the stream outlasts the wait (a short run's processes would be gone).
-            if (1 - DONE_FRACTION) * stream_s > 2 * SETTLE_S:
+            if (1 - done_at / frames) * stream_s > 2 * SETTLE_S:
                 time.sleep(SETTLE_S)
                 rss_settled = memory_mb(h.procs)
             if not h.ended.wait(stream_s + WAIT_S):
@@ -604,6 +658,7 @@ def run_fuzz(scene: Path, out: Path, messages: int, frames: int, rate: float) ->
         "posed": len(seen),
         "seconds": time.monotonic() - started,
         "fuzz_seconds": fuzzer.seconds,
+        "camera_held_s": fuzzer.held_s,
         "sent": {k: dict(v) for k, v in fuzzer.sent.items()},
         "sent_total": sum(sum(v.values()) for v in fuzzer.sent.values()),
         "still_valid": {k: dict(v) for k, v in fuzzer.still_valid.items() if v},
@@ -655,7 +710,8 @@ def table(results: list[dict]) -> str:
         ate = r.get("ate_m")
         ratio = f", {ate / clean:.2f}x clean" if ate and clean else ""
         rows.append(
-            f"{r['run']}: {r['sent_total']} messages sent in {r['fuzz_seconds']:.0f} s, "
+            f"{r['run']}: {r['sent_total']} messages sent in {r['fuzz_seconds']:.0f} s "
+            f"(camera held {r['camera_held_s']:.1f} s), "
             f"posed {r['posed']} / {r['frames']}, final frames {r.get('final_frames')}, "
             f"ATE {'-' if ate is None else f'{100 * ate:.2f} cm'}{ratio}"
         )

@@ -1,6 +1,6 @@
 """Fuzzing the running service: the short version of benchmarks/fuzz.py.
 
-The benchmark runs router, mapper, tracker and camera on a 30-frame scene and sends 600
+The benchmark runs router, mapper, tracker and camera on a 45-frame scene and sends 400
 hostile messages on each key a process subscribes to (frames, map, mapping, poses: random
 bytes, truncations, bit flips, other versions, absurd shapes, NaN and non-rigid poses, wrong
 types, duplicate and out-of-order numbers). Every process must exit 0, refuse every hostile
@@ -19,8 +19,8 @@ from dimslam.common.net.transport import REJECT_KINDS, REJECT_LOG_S
 
 pytestmark = pytest.mark.e2e
 
-FRAMES = 30
-MESSAGES = 600
+FRAMES = 45
+MESSAGES = 400
 SUBSCRIBER = {"frames": "tracker", "map": "tracker", "mapping": "mapper", "poses": "camera"}
 
 
