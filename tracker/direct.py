@@ -402,9 +402,8 @@ class DirectTracker:
             )
         pts = self._points(refs, views)
         if len(pts.p_w) < MIN_POINTS:  # nothing to solve against (a level's mean would be 0/0)
-            raise TrackingLost(
-                f"frame {frame.index}: {len(pts.p_w)} points seen by enough of the window"
-            )
+            where = "seen by enough of the window" if views is not None else "in the keyframes"
+            raise TrackingLost(f"frame {frame.index}: {len(pts.p_w)} points {where}")
         ab = self._brightness(refs)
         T_cw = np.linalg.inv(frame.T_wc.double().cpu().numpy())
         anchor = T_cw.copy()
