@@ -19,7 +19,10 @@ Each half is checked against ground truth before blaming the whole:
                                                    # poses: what the poses allow (--refit N: the
                                                    # map fitted N more iterations, poses held)
     python benchmarks/diagnose.py mesh-truth SEQ --out D  # the true depth fused at the true
-                                                   # poses: what fusion and protocol allow
+                                                   # poses: what fusion and protocol allow;
+                                                   # the share of the culled ground truth that
+                                                   # no frame sees (occluded), and the fused
+                                                   # mesh's completion of it
     python benchmarks/diagnose.py basin SEQ        # run at true poses; the warping cost of the
                                                    # pixels mapped too near, at their true depth
                                                    # times 0.4-1.5; then --rounds more mapping
@@ -764,6 +767,60 @@ def cmd_mesh_truth(args) -> None:
         )
     print(f"{len(pick)} views, {small.width} px, voxel {voxel}:")
     _write_evaluated(mesh, args, "mesh_truth.ply")
+    _occlusion_bound(args, mesh, frames, truth.poses, camera)
+
+
+OCCLUSION_TOLERANCE = 0.03
+"""A ground-truth point counts as seen by a frame when it lies at most this far (map units,
+or 2 % of its depth where that is more) behind the frame's true depth at its pixel."""
+
+
+def _occlusion_bound(args, mesh, frames, T_wc: np.ndarray, camera) -> None:
+    """What the protocol's culling counts that no camera saw: of the ground-truth surface
+    inside the frustums (the protocol's sample of 200 000 points), the share that some frame
+    sees unoccluded (its true depth at the point's pixel, `OCCLUSION_TOLERANCE`), and the
+    truth-fused `mesh`'s completion over all of it, the seen part and the hidden part (the
+    protocol has no occlusion test: what no frame saw counts as missing from every map)."""
+    from scipy.spatial import cKDTree
+
+    from dimslam.common.eval.evaluation import Sim3
+    from dimslam.common.eval.mesh_metrics import load_mesh, sample_visible
+
+    gt_mesh = load_mesh(Path(args.seq) / "mesh.ply")
+
+    def culled(surface, name: str) -> np.ndarray:  # as `evaluate_mesh` samples each surface
+        rng = np.random.default_rng(0)
+        return sample_visible(surface, 200_000, Sim3.identity(), T_wc, camera, rng, name)[0]
+
+    points = culled(gt_mesh, "ground-truth")
+    depths = gt_depths(Path(args.seq), frames, camera)
+    p_w = torch.from_numpy(points).float()
+    seen = torch.zeros(len(p_w), dtype=torch.bool)
+    T_cw = pose.invert(torch.from_numpy(np.asarray(T_wc)).float())
+    for T, depth in zip(T_cw, depths, strict=True):
+        uv, z = camera.project(pose.transform_points(T, p_w))
+        inside = (z > 1e-3) & camera.inside(uv)
+        u = uv[:, 0].round().long().clamp(0, camera.width - 1)
+        v = uv[:, 1].round().long().clamp(0, camera.height - 1)
+        d = torch.from_numpy(depth)[v, u]
+        tolerance = torch.clamp(0.02 * z, min=OCCLUSION_TOLERANCE)
+        seen |= inside & (d > 0) & (z <= d + tolerance)
+    distance, _ = cKDTree(culled(mesh, "truth-fused")).query(points, workers=-1)
+    share = float(seen.float().mean())
+    visible, hidden = distance[seen.numpy()], distance[~seen.numpy()]
+    print(
+        f"ground truth in the frustums: {share:.1%} seen unoccluded by some frame (tolerance "
+        f"{OCCLUSION_TOLERANCE * 100:.0f} cm or 2 % of the depth)\n"
+        "the truth-fused mesh's completion, cm and share within 5 cm:\n"
+        f"  over all of it     {distance.mean() * 100:6.2f}  {(distance < 0.05).mean():6.1%}\n"
+        f"  the seen part      {_mean_cm(visible):6.2f}  {(visible < 0.05).mean():6.1%}\n"
+        f"  the hidden part    {_mean_cm(hidden):6.2f}  {(hidden < 0.05).mean():6.1%}",
+        flush=True,
+    )
+
+
+def _mean_cm(distance: np.ndarray) -> float:
+    return float(distance.mean() * 100) if len(distance) else math.nan
 
 
 COMMANDS = {

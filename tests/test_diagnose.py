@@ -86,7 +86,8 @@ def test_the_true_depth_at_the_true_poses_meshes_the_scene_to_a_centimetre(
     diagnose, tmp_path, monkeypatch, capsys
 ):
     """What the fusion and the protocol allow with nothing estimated: on the built-in scene
-    (planar walls) the fused true depth lies on the true surface."""
+    (planar walls) the fused true depth lies on the true surface; what it misses of the
+    culled ground truth is what no frame sees (the protocol has no occlusion test)."""
     scene, out = tmp_path / "scene", tmp_path / "out"
     write_sequence(scene, frames=12, width=160, height=120, seed=0)
     argv = ["diagnose.py", "mesh-truth", str(scene), "--preset", "tiny", "--frames", "12"]
@@ -97,6 +98,15 @@ def test_the_true_depth_at_the_true_poses_meshes_the_scene_to_a_centimetre(
     accuracy = float(printed.split("mesh accuracy")[1].split("cm")[0])
     assert accuracy < 2.0, printed
     assert (out / "mesh_truth.ply").stat().st_size > 0
+    seen = float(printed.split("ground truth in the frustums:")[1].split("%")[0])
+    assert 0 < seen < 100, printed
+
+    def completion(part: str) -> float:
+        return float(printed.split(part)[1].split()[0])
+
+    # The split samples the surfaces as the protocol does: its whole is the protocol's figure.
+    assert completion("over all of it") == float(printed.split("mesh completion")[1].split()[0])
+    assert completion("the seen part") < 5.0 < completion("the hidden part"), printed
 
 
 def test_the_mesh_split_into_the_views_scale_and_the_poses(diagnose, tmp_path, monkeypatch, capsys):

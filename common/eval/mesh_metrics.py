@@ -102,7 +102,7 @@ def _sample(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> np.n
     return np.asarray(points, dtype=np.float64)
 
 
-def _sample_visible(
+def sample_visible(
     mesh: trimesh.Trimesh,
     count: int,
     to_world: Sim3,
@@ -214,10 +214,10 @@ def evaluate_mesh(
         check_shape("gt_poses", gt_poses, (None, 4, 4))
         if len(gt_poses) == 0 or not np.all(np.isfinite(gt_poses)):
             raise EvaluationError("ground-truth poses for culling must be non-empty and finite")
-        gt_points, gt_fraction = _sample_visible(
+        gt_points, gt_fraction = sample_visible(
             gt_mesh, samples, Sim3.identity(), gt_poses, camera, rng(), "ground-truth"
         )
-        est_points, _ = _sample_visible(
+        est_points, _ = sample_visible(
             est_mesh, samples, alignment, gt_poses, camera, rng(), "estimated"
         )
     else:
