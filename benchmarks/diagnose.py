@@ -23,6 +23,9 @@ Each half is checked against ground truth before blaming the whole:
                                                    # the share of the culled ground truth that
                                                    # no frame sees (occluded), and the fused
                                                    # mesh's completion of it
+    python benchmarks/diagnose.py mesh-seen SEQ --out RUN  # a run's mesh: its completion
+                                                   # of what some frame sees unoccluded and
+                                                   # of what none does
     python benchmarks/diagnose.py basin SEQ        # run at true poses; the warping cost of the
                                                    # pixels mapped too near, at their true depth
                                                    # times 0.4-1.5; then --rounds more mapping
@@ -767,7 +770,25 @@ def cmd_mesh_truth(args) -> None:
         )
     print(f"{len(pick)} views, {small.width} px, voxel {voxel}:")
     _write_evaluated(mesh, args, "mesh_truth.ply")
-    _occlusion_bound(args, mesh, frames, truth.poses, camera)
+    from dimslam.common.eval.evaluation import Sim3
+
+    _completion_seen(Path(args.seq), mesh, Sim3.identity(), frames, truth.poses, camera)
+
+
+def cmd_mesh_seen(args) -> None:
+    """A run's mesh (`--out RUN`: its `mesh.ply` and `trajectory.txt`) after the trajectory's
+    Sim(3), its completion split into the ground truth that some frame sees unoccluded and
+    the part none does (`_completion_seen`)."""
+    from dimslam.common.eval.mesh_metrics import load_mesh
+    from dimslam.common.io.trajectory import read_tum
+
+    if args.out is None:
+        raise SystemExit("error: mesh-seen needs --out RUN (a run folder with mesh.ply)")
+    _, camera, frames = load(args)
+    truth = _ground_truth(frames)
+    alignment = evaluate_trajectory(read_tum(args.out / "trajectory.txt"), truth).alignment
+    mesh = load_mesh(args.out / "mesh.ply")
+    _completion_seen(Path(args.seq), mesh, alignment, frames, truth.poses, camera)
 
 
 OCCLUSION_TOLERANCE = 0.03
@@ -775,25 +796,26 @@ OCCLUSION_TOLERANCE = 0.03
 or 2 % of its depth where that is more) behind the frame's true depth at its pixel."""
 
 
-def _occlusion_bound(args, mesh, frames, T_wc: np.ndarray, camera) -> None:
+def _completion_seen(seq: Path, mesh, alignment, frames, T_wc: np.ndarray, camera) -> None:
     """What the protocol's culling counts that no camera saw: of the ground-truth surface
     inside the frustums (the protocol's sample of 200 000 points), the share that some frame
     sees unoccluded (its true depth at the point's pixel, `OCCLUSION_TOLERANCE`), and the
-    truth-fused `mesh`'s completion over all of it, the seen part and the hidden part (the
-    protocol has no occlusion test: what no frame saw counts as missing from every map)."""
+    completion of `mesh` (mapped into the ground truth's frame by `alignment`) over all of
+    it, the seen part and the hidden part (the protocol has no occlusion test: what no frame
+    saw counts as missing from every map)."""
     from scipy.spatial import cKDTree
 
     from dimslam.common.eval.evaluation import Sim3
     from dimslam.common.eval.mesh_metrics import load_mesh, sample_visible
 
-    gt_mesh = load_mesh(Path(args.seq) / "mesh.ply")
+    gt_mesh = load_mesh(seq / "mesh.ply")
 
-    def culled(surface, name: str) -> np.ndarray:  # as `evaluate_mesh` samples each surface
+    def culled(surface, to_world: Sim3, name: str) -> np.ndarray:  # as `evaluate_mesh` does
         rng = np.random.default_rng(0)
-        return sample_visible(surface, 200_000, Sim3.identity(), T_wc, camera, rng, name)[0]
+        return sample_visible(surface, 200_000, to_world, T_wc, camera, rng, name)[0]
 
-    points = culled(gt_mesh, "ground-truth")
-    depths = gt_depths(Path(args.seq), frames, camera)
+    points = culled(gt_mesh, Sim3.identity(), "ground-truth")
+    depths = gt_depths(seq, frames, camera)
     p_w = torch.from_numpy(points).float()
     seen = torch.zeros(len(p_w), dtype=torch.bool)
     T_cw = pose.invert(torch.from_numpy(np.asarray(T_wc)).float())
@@ -805,13 +827,13 @@ def _occlusion_bound(args, mesh, frames, T_wc: np.ndarray, camera) -> None:
         d = torch.from_numpy(depth)[v, u]
         tolerance = torch.clamp(0.02 * z, min=OCCLUSION_TOLERANCE)
         seen |= inside & (d > 0) & (z <= d + tolerance)
-    distance, _ = cKDTree(culled(mesh, "truth-fused")).query(points, workers=-1)
+    distance, _ = cKDTree(culled(mesh, alignment, "estimated")).query(points, workers=-1)
     share = float(seen.float().mean())
     visible, hidden = distance[seen.numpy()], distance[~seen.numpy()]
     print(
         f"ground truth in the frustums: {share:.1%} seen unoccluded by some frame (tolerance "
         f"{OCCLUSION_TOLERANCE * 100:.0f} cm or 2 % of the depth)\n"
-        "the truth-fused mesh's completion, cm and share within 5 cm:\n"
+        "the mesh's completion, cm and share within 5 cm:\n"
         f"  over all of it     {distance.mean() * 100:6.2f}  {(distance < 0.05).mean():6.1%}\n"
         f"  the seen part      {_mean_cm(visible):6.2f}  {(visible < 0.05).mean():6.1%}\n"
         f"  the hidden part    {_mean_cm(hidden):6.2f}  {(hidden < 0.05).mean():6.1%}",
@@ -833,6 +855,7 @@ COMMANDS = {
     "keyframes": cmd_keyframes,
     "mesh": cmd_mesh,
     "mesh-truth": cmd_mesh_truth,
+    "mesh-seen": cmd_mesh_seen,
     "basin": cmd_basin,
 }
 
@@ -873,7 +896,9 @@ def main() -> None:
         help="basin: settings of the extra mapping rounds only",
     )
     parser.add_argument(
-        "--out", type=Path, help="mesh, mesh-truth: folder for the meshes and trajectory"
+        "--out",
+        type=Path,
+        help="mesh, mesh-truth: folder for the meshes and trajectory; mesh-seen: the run's",
     )
     parser.add_argument(
         "--refit",

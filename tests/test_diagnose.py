@@ -108,6 +108,13 @@ def test_the_true_depth_at_the_true_poses_meshes_the_scene_to_a_centimetre(
     assert completion("over all of it") == float(printed.split("mesh completion")[1].split()[0])
     assert completion("the seen part") < 5.0 < completion("the hidden part"), printed
 
+    # A run's mesh (here the truth's, at the true trajectory) split the same way.
+    (out / "mesh_truth.ply").rename(out / "mesh.ply")
+    monkeypatch.setattr("sys.argv", ["diagnose.py", "mesh-seen", *argv[2:], "--out", str(out)])
+    diagnose.main()
+    split = capsys.readouterr().out
+    assert split.strip() == printed[printed.index("ground truth in the frustums") :].strip()
+
 
 def test_the_mesh_split_into_the_views_scale_and_the_poses(diagnose, tmp_path, monkeypatch, capsys):
     """`mesh` prints each mesh view's depth (the map's and the plane sweep's) against the truth
