@@ -55,7 +55,7 @@ import numpy as np
 import torch
 
 from dimslam.common.config import PRESETS
-from dimslam.common.eval.evaluation import evaluate_trajectory
+from dimslam.common.eval.evaluation import Sim3, evaluate_trajectory
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory
@@ -770,8 +770,6 @@ def cmd_mesh_truth(args) -> None:
         )
     print(f"{len(pick)} views, {small.width} px, voxel {voxel}:")
     _write_evaluated(mesh, args, "mesh_truth.ply")
-    from dimslam.common.eval.evaluation import Sim3
-
     _completion_seen(Path(args.seq), mesh, Sim3.identity(), frames, truth.poses, camera)
 
 
@@ -805,7 +803,6 @@ def _completion_seen(seq: Path, mesh, alignment, frames, T_wc: np.ndarray, camer
     saw counts as missing from every map)."""
     from scipy.spatial import cKDTree
 
-    from dimslam.common.eval.evaluation import Sim3
     from dimslam.common.eval.mesh_metrics import load_mesh, sample_visible
 
     gt_mesh = load_mesh(seq / "mesh.ply")
