@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ from dimslam.common.geometry import sim3
 from dimslam.common.io.synth import SynthScene, default_camera
 from dimslam.common.map.render import RenderConfig
 from dimslam.common.optim.window import FrameState
-from dimslam.mapper.loop import LoopCloser, LoopConfig, describe, match
+from dimslam.mapper.loop import LoopCloser, LoopConfig, covered, describe, match
 from dimslam.tracker.tracker import TrackerConfig
 
 FRAMES, EVERY = 150, 5
@@ -143,3 +144,33 @@ def test_consistent_poses_agree(loop_keyframes):
         closer.add(f, _depth_fn(exact, [1.0] * len(exact), depths))
     loop = closer.detect(exact[-1], exact)
     assert loop is not None and closer.agrees(loop), loop
+
+
+def test_covered_share_of_the_image():
+    camera = default_camera(160, 120)
+    corners = np.array([[0, 0], [80, 0], [80, 60], [0, 60], [40, 30]], float)
+    assert covered(corners, camera) == pytest.approx(0.25)
+    assert covered(corners[:2], camera) == 0.0
+
+
+def test_loop_seen_through_a_sliver_is_refused(loop_keyframes):
+    """The new keyframe keeps only its features in a band 8 px wide: the PnP inliers cover
+    under `min_area` of the image, and the loop they would measure is refused."""
+    _, frames, scales, depths, camera = loop_keyframes
+    depth = _depth_fn(frames, scales, depths)
+    found = {}
+    for min_area in (0.0, LoopConfig.min_area):
+        closer = _closer(dataclasses.replace(GAP, min_inliers=12, min_area=min_area), camera)
+        for f in frames:
+            closer.add(f, depth)
+        code = closer.codes[frames[-1].index]
+        band = np.abs(code.points[:, 0] - camera.width / 2) < 4
+        closer.codes[code.index] = dataclasses.replace(
+            code,
+            points=code.points[band],
+            descriptors=code.descriptors[band],
+            depth=code.depth[band],
+        )
+        found[min_area] = closer._find(frames[-1], frames)
+    assert found[0.0] is not None and found[0.0].inliers >= 12, found
+    assert found[LoopConfig.min_area] is None
