@@ -110,9 +110,9 @@ class LoopConfig:
     min_area: float = option(
         0.06,
         "Least share of the new keyframe's image that the convex hull of its PnP inliers "
-        "covers: inliers in a sliver of the image leave the pose ill-posed (room5 seed 0: "
-        "2-5 %, turns measured 8-22 degrees off the truth; true loops on 7-Scenes and the "
-        "built-in loop: 7-44 %).",
+        "covers: inliers in a sliver of the image leave the pose ill-posed (room5 seeds 0 "
+        "and 1: 2-5 %, turns measured 8-22 degrees off the truth; true loops on 7-Scenes and "
+        "the built-in loop: 6.7-44 %).",
     )
     confirm: float = option(
         0.05,
