@@ -111,8 +111,8 @@ class LoopConfig:
         0.06,
         "Least share of the new keyframe's image that the convex hull of its PnP inliers "
         "covers: inliers in a sliver of the image leave the pose ill-posed (room5 seeds 0 "
-        "and 1: 2-5 %, turns measured 8-22 degrees off the truth; true loops on 7-Scenes and "
-        "the built-in loop: 6.7-44 %).",
+        "and 1: 0.02-0.05, turns measured 8-22 degrees off the truth; true loops on 7-Scenes "
+        "and the built-in loop: 0.067-0.44).",
     )
     confirm: float = option(
         0.05,
