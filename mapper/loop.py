@@ -333,7 +333,8 @@ class LoopCloser:
         if not found or inliers is None or len(inliers) < self.cfg.min_inliers:
             return None
         inliers = inliers.ravel()
-        area = covered(uv_new[ok][inliers], self.camera)
+        uv_inliers = uv_new[ok][inliers].astype(np.float64)
+        area = covered(uv_inliers, self.camera)
         if area < self.cfg.min_area:
             log.info(
                 "loop %d -> %d: PnP inliers cover %.1f %% of the image (under %.1f %%)",
@@ -345,7 +346,7 @@ class LoopCloser:
             return None
         found, rvec, tvec = cv2.solvePnP(
             X_old[inliers],
-            uv_new[ok][inliers].astype(np.float64),
+            uv_inliers,
             K,
             None,
             rvec,
