@@ -114,6 +114,15 @@ class MapperConfig:
         True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
+    early_patch_sizes: tuple[int, ...] = option(
+        (),
+        "Patch sizes of the warping loss in the mapping rounds whose newest frame comes "
+        "before `early_until` (empty: loss.patch_sizes throughout): e.g. the paper's 1,5,11 "
+        "while a young map finds its scale, with loss.patch_sizes 1,5 after (docs/results.md).",
+    )
+    early_until: int = option(
+        0, "Mapping rounds whose newest frame comes before this index use `early_patch_sizes`."
+    )
     refine_keyframes: int = option(
         0,
         "Adam steps of the paper's tracking window objective (the `tracker` section's window "
@@ -192,6 +201,8 @@ class MapperConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.pose_gate <= 1:
             raise ValueError(f"mapper.pose_gate must be in [0, 1], got {self.pose_gate}")
+        if self.early_until > 0 and not self.early_patch_sizes:
+            raise ValueError("mapper.early_until needs mapper.early_patch_sizes")
 
 
 @dataclass(frozen=True)
@@ -247,7 +258,8 @@ class Mapper:
         self.generator = generator
         self.map_cfg = map_cfg
         self.field = make_field(map_cfg, device=device)
-        self.margin = max(loss_cfg.patch_sizes) // 2
+        # Pixels are drawn where the widest patch of any round fits.
+        self.margin = max((*loss_cfg.patch_sizes, *cfg.early_patch_sizes)) // 2
         self._map_optimizer: torch.optim.Optimizer | None = None
         self.sweeps: dict[int, SweepDepth] = {}  # keyframe index -> its multi-view depth
         # keyframe index -> (its and its sources' poses, its plane sweep at them) for the mesh
@@ -510,7 +522,7 @@ class Mapper:
             self._sampler(len(window)),
             self.cfg.iters,
             self.cfg.pose_lr,
-            self.loss_cfg,
+            self._round_loss(recent[-1].index),
             self.render_cfg,
             map_optimizer=self._round_optimizer(),
             generator=self.generator,
@@ -521,6 +533,12 @@ class Mapper:
             pose_gate=self.cfg.pose_gate,
         )
         return MapRound(stats, tuple(f.index for f in window))
+
+    def _round_loss(self, newest: int) -> LossConfig:
+        """The objective of a mapping round whose newest frame is `newest` (`early_until`)."""
+        if newest < self.cfg.early_until:
+            return replace(self.loss_cfg, patch_sizes=self.cfg.early_patch_sizes)
+        return self.loss_cfg
 
     def _sweep_new(self, recent: list[FrameState], keyframes: list[FrameState]) -> None:
         """Plane sweeps of the recent keyframes that have none yet (`stereo_weight`)."""

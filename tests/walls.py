@@ -32,6 +32,7 @@ def wall(p: torch.Tensor, with_color: bool = True) -> FieldOutput:
 
 
 SMALL_MAP = MapConfig(voxel_sizes=(0.5, 0.25), bound=(-3.0, -3.0, -1.0, 3.0, 3.0, 5.0))
+SMALL_LOSS = LossConfig(patch_sizes=(1, 5), min_views=1, smooth_blocks=4)
 SMALL_RENDER = RenderConfig(n_stratified=8, n_importance=4, importance_rounds=1, far=4.0)
 
 
@@ -39,12 +40,13 @@ def small_mapper(
     cfg: MapperConfig,
     map_cfg: MapConfig = SMALL_MAP,
     render_cfg: RenderConfig = SMALL_RENDER,
+    loss_cfg: LossConfig = SMALL_LOSS,
 ) -> Mapper:
     """A mapper of a small map seen by `CAM`, for tests that need no trained map."""
     return Mapper(
         cfg,
         map_cfg,
-        LossConfig(patch_sizes=(1, 5), min_views=1, smooth_blocks=4),
+        loss_cfg,
         render_cfg,
         0.0,
         50,
