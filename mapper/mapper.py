@@ -116,12 +116,13 @@ class MapperConfig:
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     early_patch_sizes: tuple[int, ...] = option(
         (),
-        "Patch sizes of the warping loss in the mapping rounds whose newest frame comes "
-        "before `early_until` (empty: loss.patch_sizes throughout): e.g. the paper's 1,5,11 "
-        "while a young map finds its scale, with loss.patch_sizes 1,5 after (docs/results.md).",
+        "Patch sizes of the warping loss in the mapper's optimizations (initialization, "
+        "mapping and global rounds) whose newest frame comes before `early_until` (empty: "
+        "loss.patch_sizes throughout): e.g. the paper's 1,5,11 while a young map finds its "
+        "scale, with loss.patch_sizes 1,5 after (docs/results.md).",
     )
     early_until: int = option(
-        0, "Mapping rounds whose newest frame comes before this index use `early_patch_sizes`."
+        0, "The mapper's optimizations before this frame index use `early_patch_sizes`."
     )
     refine_keyframes: int = option(
         0,
@@ -408,7 +409,7 @@ class Mapper:
                 self._sampler(len(window)),
                 iterations,
                 self.cfg.pose_lr,
-                self.loss_cfg,
+                self._round_loss(window),
                 self.render_cfg,
                 map_optimizer=self._adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
@@ -490,7 +491,7 @@ class Mapper:
                 self.camera,
                 frame,
                 uv,
-                self.loss_cfg,
+                self._round_loss(frames),
                 self.render_cfg,
                 g,
             )
@@ -522,7 +523,7 @@ class Mapper:
             self._sampler(len(window)),
             self.cfg.iters,
             self.cfg.pose_lr,
-            self._round_loss(recent[-1].index),
+            self._round_loss(window),
             self.render_cfg,
             map_optimizer=self._round_optimizer(),
             generator=self.generator,
@@ -534,9 +535,9 @@ class Mapper:
         )
         return MapRound(stats, tuple(f.index for f in window))
 
-    def _round_loss(self, newest: int) -> LossConfig:
-        """The objective of a mapping round whose newest frame is `newest` (`early_until`)."""
-        if newest < self.cfg.early_until:
+    def _round_loss(self, frames: list[FrameState]) -> LossConfig:
+        """The objective of an optimization of the map seen by `frames` (`early_until`)."""
+        if max(f.index for f in frames) < self.cfg.early_until:
             return replace(self.loss_cfg, patch_sizes=self.cfg.early_patch_sizes)
         return self.loss_cfg
 
@@ -650,7 +651,7 @@ class Mapper:
                 self._sampler(len(window)),
                 min(chunk, remaining),
                 self.cfg.pose_lr if poses else 0.0,
-                self.loss_cfg,
+                self._round_loss(keyframes),
                 self.render_cfg,
                 map_optimizer=self._adam(self._groups(0.0)),
                 generator=self.generator,
