@@ -261,7 +261,7 @@ class Mapper:
         self.map_cfg = map_cfg
         self.field = make_field(map_cfg, device=device)
         # Pixels are drawn where the widest patch of any round fits.
-        self.margin = max((*loss_cfg.patch_sizes, *cfg.early_patch_sizes)) // 2
+        self.margin = loss_cfg.margin(cfg.early_patch_sizes)
         self._map_optimizer: torch.optim.Optimizer | None = None
         self.sweeps: dict[int, SweepDepth] = {}  # keyframe index -> its multi-view depth
         # keyframe index -> (its and its sources' poses, its plane sweep at them) for the mesh

@@ -182,7 +182,7 @@ class Tracker:
         self.render_cfg = render_cfg
         self.camera = camera
         self.generator = generator
-        self.margin = max(loss_cfg.patch_sizes) // 2
+        self.margin = loss_cfg.margin()
 
     def track(
         self, field: FieldFn, local: list[FrameState], keyframes: list[FrameState]
@@ -298,7 +298,7 @@ class Tracker:
         """
         sources = [i for i, m in enumerate(movable) if not m]
         targets = [i for i, m in enumerate(movable) if m]
-        offsets = losses.patch_offsets(max(self.loss_cfg.patch_sizes), device=window[0].rgb.device)
+        offsets = self.loss_cfg.offsets(device=window[0].rgb.device)
         per_frame = max(1, self.cfg.pixels // len(sources))
         uv = torch.cat(
             [
