@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import queue
 import re
 import signal
 import threading
@@ -449,12 +450,26 @@ class Stop:
 
     @contextmanager
     def on_signals(self) -> Iterator[Stop]:
-        """Install SIGINT/SIGTERM handlers for the block's duration (main thread only)."""
+        """Install SIGINT/SIGTERM handlers for the block's duration (main thread only).
+
+        A handler runs in the main thread between two of its bytecodes, possibly while
+        that thread holds the very lock `set` takes (waiting on the stop event or an inbox
+        re-acquires their condition's lock): `set` from the handler then waits for itself
+        forever (a SIGTERMed camera hung 1 run in about 15 under load). So the handler only
+        hands the signal's name to a thread of its own (`queue.SimpleQueue.put` is reentrant),
+        which calls `set`."""
         previous = {}
+        names: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+
+        def relay() -> None:
+            while (name := names.get()) is not None:
+                self.set(name)
 
         def handler(signum: int, _frame) -> None:
-            self.set(signal.Signals(signum).name)
+            names.put(signal.Signals(signum).name)
 
+        relaying = threading.Thread(target=relay, name="signals", daemon=True)
+        relaying.start()
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, handler)
         try:
@@ -462,3 +477,5 @@ class Stop:
         finally:
             for sig, old in previous.items():
                 signal.signal(sig, old)
+            names.put(None)
+            relaying.join()

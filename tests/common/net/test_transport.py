@@ -8,6 +8,8 @@ timeout, never on sleep; every session is closed in a `with` block so nothing ha
 import json
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -416,6 +418,36 @@ def test_stop_wakes_a_waiting_inbox():
     worker.join(WAIT)
     assert not worker.is_alive(), "set() did not wake the waiting get"
     assert result == [None] and stop
+
+
+SIGNALLED_LOOP = """
+import time
+from dimslam.common.net.transport import Stop
+stop = Stop()
+with stop.on_signals():
+    print("ready", flush=True)
+    end = time.monotonic() + 3
+    while time.monotonic() < end:
+        stop.event.wait(0)  # takes the event's lock, as every wait on the stop does
+print("done", flush=True)
+"""
+
+
+def test_a_signal_that_lands_while_the_main_thread_holds_the_stop_s_lock_does_not_hang_it():
+    child = subprocess.Popen(
+        [sys.executable, "-c", SIGNALLED_LOOP], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert child.stdout.readline() == "ready\n"
+        for _ in range(2000):  # setting the event from the handler itself hung within these
+            if child.poll() is not None:
+                break
+            child.send_signal(signal.SIGTERM)
+            time.sleep(0.0005)
+        out, _ = child.communicate(timeout=30)
+    finally:
+        child.kill()
+    assert out == "done\n" and child.returncode == 0
 
 
 def test_signal_handlers_set_the_event_and_are_restored():
