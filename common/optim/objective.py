@@ -58,7 +58,7 @@ class LossConfig:
         """`(P, 2)` the warping loss's patch layout (`losses.patch_offsets` of the largest
         size), its samples `patch_stride` pixels apart."""
         offsets = losses.patch_offsets(max(self.patch_sizes), dtype=dtype, device=device)
-        return offsets * self.patch_stride if self.patch_stride != 1 else offsets
+        return offsets * self.patch_stride
 
     def margin(self, sizes: tuple[int, ...] = ()) -> int:
         """Pixels from the border where the largest patch (of `patch_sizes` and `sizes`)
