@@ -241,16 +241,6 @@ class FrontEnd:
                 seen,
             )
             return
-        if cfg.tracker.window_refine_guess:
-            newest.T_wc = guess.clone()
-            self.refined.append(newest.index)
-            log.info(
-                "frame %d: %.2f deg from its guess, %.2f of it seen; the guess taken",
-                newest.index,
-                math.degrees(turned),
-                seen,
-            )
-            return
         sources = [f for f in local if f.rgb is not None]
         if len(sources) < 2:
             return

@@ -107,11 +107,6 @@ class TrackerConfig:
         "view's turn-or-slide; a hand-held jerk is a turn the images see), or right after "
         "a frame solved again. 0: every frame past `window_refine_deg`.",
     )
-    window_refine_guess: bool = option(
-        False,
-        "direct: where `window_refine_deg` would solve a frame again, take its motion guess "
-        "instead (the departure is what the images do not support).",
-    )
     colour: bool = option(
         False,
         "direct: solve on the three colour channels (three residuals per point, one "
