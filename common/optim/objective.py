@@ -14,7 +14,6 @@ objective is differentiable in the map and in every pose it is given.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -39,31 +38,18 @@ class LossConfig:
         "stops at a surface (0: off, the paper's).",
     )
     patch_sizes: tuple[int, ...] = option((1, 5, 11), "Patch sizes of the warping loss.")
-    patch_stride: float = option(
-        1.0,
-        "Pixels between neighbouring samples of a patch: with 2.5, sizes 1,3,5 reach as far "
-        "as 1,6,11 adjacent pixels do, on the 25 samples of a 5 px patch (a dense mapping "
-        "iteration 1.4x cheaper). Measured with mapper.iters 70 against the cpu preset, "
-        "every run worse (room3 seed 0 3.90 -> 4.53 cm, room5 seed 0 8.25 -> 12.81; "
-        "docs/results.md, session 47).",
-    )
     min_views: int = option(5, "A pixel counts if it lands inside more than this many frames.")
     smooth_blocks: int = option(128, "Rendered 2x2 pixel blocks per iteration for smoothness.")
 
-    def __post_init__(self) -> None:
-        if not self.patch_stride > 0:
-            raise ValueError(f"loss.patch_stride must be positive, got {self.patch_stride}")
-
     def offsets(self, dtype=torch.float32, device=None) -> torch.Tensor:
         """`(P, 2)` the warping loss's patch layout (`losses.patch_offsets` of the largest
-        size), its samples `patch_stride` pixels apart."""
-        offsets = losses.patch_offsets(max(self.patch_sizes), dtype=dtype, device=device)
-        return offsets * self.patch_stride
+        size)."""
+        return losses.patch_offsets(max(self.patch_sizes), dtype=dtype, device=device)
 
     def margin(self, sizes: tuple[int, ...] = ()) -> int:
         """Pixels from the border where the largest patch (of `patch_sizes` and `sizes`)
         still fits whole."""
-        return math.ceil(max((*self.patch_sizes, *sizes)) // 2 * self.patch_stride)
+        return max((*self.patch_sizes, *sizes)) // 2
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,8 @@
 """The window objective's optional terms and shapes: the opacity term, the pose gate, the
-patches' stride."""
+margin its patches need."""
 
 import dataclasses
 
-import pytest
 import torch
 
 from dimslam.common.geometry import pose
@@ -95,24 +94,7 @@ def test_rays_under_the_pose_gate_move_the_map_but_no_pose():
     assert torch.allclose(gated_map, every_map)
 
 
-def test_a_strided_patch_reaches_as_far_as_its_stride_times_its_size():
-    dense = LossConfig(patch_sizes=(1, 3, 5), render_weight=0.0)
-    strided = dataclasses.replace(dense, patch_stride=2.5)
-    assert dense.margin() == 2 and strided.margin() == 5
-    assert float(strided.offsets().abs().max()) == 5.0 and len(strided.offsets()) == 25
+def test_the_margin_fits_the_largest_patch():
+    assert LossConfig(patch_sizes=(1, 3, 5)).margin() == 2
     assert LossConfig().margin() == 5 and LossConfig().margin((1, 15)) == 7
-    # Two views from one pose that differ only in the column 5 px right of the pixel: the
-    # 5 px patch cannot see it, the same 25 samples 2.5 px apart do.
-    field = DenseField(MapConfig(voxel_sizes=(0.5, 0.25), bound=(-2.0, -2.0, -2.0, 2.0, 2.0, 2.0)))
-    images = torch.full((2, CAM.height, CAM.width, 3), 0.5)
-    images[1, :, 24] = 0.9
-    poses = torch.eye(4).expand(2, 4, 4)
-    uv, frame = torch.tensor([[19.0, 14.0]]), torch.zeros(1, dtype=torch.long)
-
-    def warp(cfg: LossConfig) -> float:
-        return window_objective(field, images, poses, CAM, frame, uv, cfg, RENDER).warp
-
-    assert warp(dense) == 0.0
-    assert warp(strided) > 0.01
-    with pytest.raises(ValueError, match="patch_stride"):
-        LossConfig(patch_stride=0.0)
+    assert len(LossConfig(patch_sizes=(1, 5)).offsets()) == 25
