@@ -398,8 +398,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=map_lag_rounds,
         metavar="ROUNDS",
         help="service only: mapping rounds the tracker may run ahead of the map (default: "
-        f"{launch.MAP_LAG}, tracking overlaps the round in progress; 0: the tracker waits for "
-        "every round, as accurate as --single-process and as slow; docs/results.md measures both)",
+        f"{launch.MAP_LAG}: the tracker waits for every round, and the run computes what "
+        "--single-process computes with the same --threads per process; 1: tracking overlaps "
+        "the round in progress, a round behind the map, and less accurate; docs/results.md "
+        "measures both)",
     )
     p.add_argument(
         "--realtime",

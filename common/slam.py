@@ -41,10 +41,12 @@ class Slam:
         self.cfg = cfg
         self.camera = camera
         self.device = device
+        # Each half draws from a generator of its own, seeded as in its service process, so
+        # that a lockstep run through the service (`dimslam run`) computes this one.
         self.generator = torch.Generator(device).manual_seed(cfg.seed)
         torch.manual_seed(cfg.seed)  # the grids' initialization
         self.back = BackEnd(cfg, camera, device, self.generator)
-        self.front = FrontEnd(cfg, camera, self.generator)
+        self.front = FrontEnd(cfg, camera, torch.Generator(device).manual_seed(cfg.seed))
         self.last_loss = math.nan
         self.fed = 0
 

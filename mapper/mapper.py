@@ -185,6 +185,13 @@ class MapperConfig:
         "(0: never).",
     )
     global_iters: int = option(20, "Iterations of a global refinement round.")
+    idle_chunks: int = option(
+        20,
+        "Service only: short global refinement chunks (a quarter of global_iters each) a "
+        "mapper runs while it waits for a batch, at most this many after each round; each "
+        "is published as a snapshot (0: none). When they run depends on timing, so `dimslam "
+        "run` in lockstep sets 0: there the service computes what one process does.",
+    )
     mesh_voxel: float = option(0.02, "Marching-cubes spacing of the mesh, map units.")
     mesh_views: int = option(60, "Poses whose rendered depth is fused into the mesh.")
     mesh_width: int = option(160, "Width of the depth images rendered for the mesh's fusion.")
@@ -205,6 +212,8 @@ class MapperConfig:
             raise ValueError(f"mapper.pose_gate must be in [0, 1], got {self.pose_gate}")
         if self.early_until > 0 and not self.early_patch_sizes:
             raise ValueError("mapper.early_until needs mapper.early_patch_sizes")
+        if self.idle_chunks < 0:
+            raise ValueError(f"mapper.idle_chunks must be 0 or more, got {self.idle_chunks}")
 
 
 @dataclass(frozen=True)

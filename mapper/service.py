@@ -14,7 +14,8 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
   the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
 - With `mapper.global_every` set, a mapper that waits for a batch spends the wait on short
   chunks of global refinement (keyframes anywhere on the path and the map), each published
-  as a snapshot, up to `IDLE_CHUNKS` per batch.
+  as a snapshot, up to `mapper.idle_chunks` per batch; then it waits without work (a stream
+  that paused or ended costs no CPU for long).
 - A tracker whose mapper was restarted sends its own snapshot on the mapping topic, then its
   newest keyframes: a mapper without a map (only) takes them as its starting point.
 - Queries: `query/map` (the newest snapshot), `query/keyframes` (the newest keyframes with
@@ -75,9 +76,6 @@ from dimslam.mapper.backend import BackEnd
 log = logging.getLogger(__name__)
 
 WAIT_S = 0.5
-IDLE_CHUNKS = 20
-"""Global refinement chunks (`mapper.global_every`) a mapper runs while no batch comes, after
-each batch; then it waits without work (a stream that paused or ended costs no CPU for long)."""
 MAX_BACKLOG = 2
 """Batches that may wait and still be mapped one round each. A tracker at `--map-lag 1` can
 have two waiting at the end of a round (it tracks fast, the mapper reads its inbox a moment
@@ -322,13 +320,13 @@ class MapperService:
 
     def _idle(self) -> None:
         """No batch waiting: a short chunk of global refinement, published as a snapshot
-        (`mapper.global_every` > 0; at most `IDLE_CHUNKS` after each batch)."""
+        (`mapper.global_every` > 0; at most `mapper.idle_chunks` after each batch)."""
         back = self.back
         if (
             back is None
             or not back.initialized
             or self.cfg.mapper.global_every <= 0
-            or self.idle_chunks >= IDLE_CHUNKS
+            or self.idle_chunks >= self.cfg.mapper.idle_chunks
             or len(back.keyframes) < 2
         ):
             return

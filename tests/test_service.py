@@ -59,10 +59,13 @@ def test_run_through_the_service(service_run):
     # A lost tracker scores tens of centimetres; a working one ~0.5-1 cm here.
     assert metrics["ate_rmse_m"] < 0.04
     assert metrics["online_ate_rmse_m"] < 0.04
-    # Initialization plus one round per batch (frames 10, 15, ..., 35), none taken together:
-    # the tracker stays within one round of the map (launch.MAP_LAG).
+    # Initialization plus one round per batch (frames 10, 15, ..., 35), none taken together;
+    # the tracker waited for each round's snapshot before its next frame (launch.MAP_LAG):
+    # no frame was tracked while a batch it had sent was still being mapped.
     assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
-    assert json.loads((out / "config.json").read_text())["map_lag"] == 1
+    assert json.loads((out / "config.json").read_text())["map_lag"] == 0
+    stats = json.loads((out / "tracker_stats.json").read_text())
+    assert stats["tracked"] > 0 and stats["frames_mapper_busy"] == 0
 
 
 def test_the_viewer_records_the_run_as_rerun_shows_it(service_run):
@@ -107,16 +110,35 @@ def test_evo_agrees_with_the_evaluator(service_run, sequence, tmp_path):
     assert abs(rmse - ours) <= 1e-4, (rmse, ours)
 
 
-def test_map_lag_0_tracks_every_frame_on_the_newest_map(sequence, tmp_path):
+def test_the_service_in_lockstep_computes_what_one_process_computes(sequence, tmp_path):
+    """The same settings and seed through the service and in one process: the same final
+    trajectory, to the last digit. With global refinement on, a mapper left to refine while
+    it waits for a batch would publish maps one process never makes (`mapper.idle_chunks`,
+    0 in lockstep)."""
+    # One thread in each process, as in one process: another thread count sums in another
+    # order, and chaotic runs part at the first rounding.
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--threads", "1"]
+    args += ["--seed", "3"]
+    args += ["--mapper.global_every", "2"]
+    service, alone = tmp_path / "service", tmp_path / "alone"
+    assert main(["run", str(sequence), "--out", str(service), *args]) == 0
+    assert main(["run", str(sequence), "--out", str(alone), "--single-process", *args]) == 0
+    config = json.loads((service / "config.json").read_text())
+    assert config["map_lag"] == 0 and config["mapper"]["idle_chunks"] == 0
+    assert "0 idle refinement chunks" in (service / "mapper.log").read_text()
+    ours, theirs = read_tum(service / "trajectory.txt"), read_tum(alone / "trajectory.txt")
+    assert len(ours) == len(theirs) == FRAMES
+    assert np.array_equal(ours.poses, theirs.poses)
+
+
+def test_map_lag_1_lets_the_tracker_run_a_round_ahead(sequence, tmp_path):
     out = tmp_path / "run"
-    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--map-lag", "0"]
+    args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--map-lag", "1"]
     assert main(["run", str(sequence), "--out", str(out), *args]) == 0
     assert len(read_tum(out / "poses_received.txt")) == FRAMES
-    assert json.loads((out / "config.json").read_text())["map_lag"] == 0
-    stats = json.loads((out / "tracker_stats.json").read_text())
-    # The tracker waited for each round's snapshot before its next frame: no frame was
-    # tracked while a batch it had sent was still being mapped.
-    assert stats["tracked"] > 0 and stats["frames_mapper_busy"] == 0
+    assert json.loads((out / "config.json").read_text())["map_lag"] == 1
+    # Mapping rounds of 40 iterations are slower than tracking 5 frames, yet no two batches
+    # were taken into one round: the tracker stayed within one round of the map.
     assert "mapper.service: 7 rounds" in (out / "mapper.log").read_text()
 
 

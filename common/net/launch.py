@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from contextlib import ExitStack
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -34,13 +35,15 @@ log = logging.getLogger(__name__)
 
 STOP_GRACE_S = 20.0
 """How long a process may take to flush and exit after SIGTERM before it is killed."""
-MAP_LAG = 1
-"""Mapping rounds the tracker may run ahead of the map (`dimslam-tracker --map-lag`): one,
-so tracking overlaps the round in progress; a tracker faster than its mapper (two CPU
-processes) would otherwise track most frames on a map rounds old, and the mapper, taking its
-pending batches together, ran 26 rounds for 7-Scenes' 500 frames instead of 100. The round
-it runs ahead costs accuracy: 0 (wait for every round) tracks as well as one process does,
-and as slowly (docs/results.md, "Service vs single process")."""
+MAP_LAG = 0
+"""Mapping rounds the tracker may run ahead of the map (`dimslam-tracker --map-lag`): none,
+so that each frame is tracked on the map one process would track it on, and (with the
+mapper's idle chunks off, `run_service`) the service computes what one process computes. 1
+overlaps tracking with the round in progress, but tracks a round behind: room0 3.19 cm
+against one process's 1.51 over 3 seeds (docs/results.md, "The service computes what one
+process computes"). Without a bound a tracker faster than its mapper tracks most frames on
+a map rounds old, and the mapper, taking its pending batches together, ran 26 rounds for
+7-Scenes' 500 frames instead of 100."""
 
 
 LISTEN_PORTS = (20000, 32768)
@@ -112,6 +115,10 @@ def run_service(
     Raises:
         DimslamError: a process failed (its log is named) or the dataset cannot be read.
     """
+    if realtime is None:
+        # Chunks run while the mapper waits for a batch: when they run depends on timing,
+        # and with them the run is not the one-process run.
+        cfg = replace(cfg, mapper=replace(cfg.mapper, idle_chunks=0))
     out_dir.mkdir(parents=True, exist_ok=True)
     for stale in ("trajectory.txt", "trajectory_online.txt", "poses_received.txt", "mesh.ply"):
         (out_dir / stale).unlink(missing_ok=True)
