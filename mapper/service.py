@@ -10,8 +10,8 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
   backpressure policy): the round runs on the newest `every` frames plus overlapping
   keyframes, exactly as in one process, so the frames in between keep their tracked poses.
   Offline runs never fall that far behind (`dimslam-tracker --map-lag`).
-- After each round: a versioned snapshot (map tensors, refined poses of every keyframe and of
-  the round's frames) on the map topic, and the refined keyframe poses on the keyframes topic.
+- After each round: a versioned snapshot (map tensors, the poses of every frame received) on
+  the map topic, and the refined keyframe poses on the keyframes topic.
 - With `mapper.global_every` set, a mapper that waits for a batch spends the wait on short
   chunks of global refinement (keyframes anywhere on the path and the map), each published
   as a snapshot, up to `mapper.idle_chunks` per batch; then it waits without work (a stream
@@ -310,10 +310,9 @@ class MapperService:
     def _step(self, batches: list[MappingBatch]) -> None:
         """One round on the frames just received: initialization first, then mapping."""
         assert self.back is not None
-        result = self.back.step()
+        self.back.step()
         self.idle_chunks = 0
-        by_index = {f.index: f for f in self.frames}
-        self._publish(batches[-1].round, [by_index[i] for i in result.window])
+        self._publish(batches[-1].round)
         every = self.checkpoint_every
         if self.checkpoint_dir is not None and every > 0 and self.rounds % every == 0:
             self.write_checkpoint(self.checkpoint_dir)
@@ -333,7 +332,7 @@ class MapperService:
         self.idle_chunks += 1
         self.idle_total += 1
         back.refine_global(max(1, self.cfg.mapper.global_iters // 4))
-        self._publish(self.last_round, [])
+        self._publish(self.last_round)
 
     def _seed(self, snap: MapSnapshot) -> None:
         """A tracker's map, sent because this mapper had none: kept for its next batch."""
@@ -357,14 +356,16 @@ class MapperService:
         self.back = BackEnd(self.cfg, camera, self.device, self.generator)
         self.version = 0
 
-    def _publish(self, round_: int, window: list[FrameState]) -> None:
+    def _publish(self, round_: int) -> None:
         assert self.back is not None
         self.version += 1
         self.last_round = round_
+        # Every frame's pose, not only the round's and the keyframes': global refinement and
+        # loop closure move frames of earlier rounds, and the tracker's views of its recent
+        # frames must see that as one process's shared frames do (16 doubles a frame).
         keyframes = self.keyframes
-        refined = {f.index: f for f in [*keyframes, *window]}
         snap = to_snapshot(
-            self.version, round_, self.digest, self.back.field, refined.values(), keyframes
+            self.version, round_, self.digest, self.back.field, self.frames, keyframes
         )
         self.snapshot_bytes = snap.to_bytes()
         self.map_pub.put(self.snapshot_bytes)
@@ -377,7 +378,7 @@ class MapperService:
             log.warning("end of stream before any map was built")
             return
         if self.back.finish():
-            self._publish(self.rounds, [])
+            self._publish(self.rounds)
         log.info("end of stream: map version %d, %d frames", self.version, len(self.frames))
 
     # -- checkpoints ------------------------------------------------------------------------

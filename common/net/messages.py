@@ -451,7 +451,8 @@ class MapSnapshot(Message):
         config: digest of the map and render settings; a tracker with other settings rejects it.
         state: the field's tensors by name (`Field.state_dict()` as numpy arrays): float32,
             and int64 for a sparse map's block coordinates.
-        poses: refined `T_wc` by frame seq: every keyframe plus the round's frames.
+        poses: `T_wc` by frame seq: every frame the mapper holds (the mapper service sends
+            them all); a tracker takes them as they are.
         keyframes: seqs of every keyframe so far.
     """
 
