@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -122,7 +123,10 @@ class BackEnd:
         self.anchors: dict[int, tuple[FrameState, torch.Tensor]] = {}
         self.initialized = False
         self.rounds = 0
+        self.short_rounds = 0  # rounds on live frames cut to `mapper.live_iters`
         self.round_seconds: list[float] = []
+        # Seconds each part of the mapping rounds took, summed over the rounds (`phases`).
+        self.phase_seconds: dict[str, float] = {}
         self.closer = (
             LoopCloser(cfg.loop, camera, cfg.render, cfg.tracker, cfg.mapper.gauge_depth, device)
             if cfg.loop.enabled
@@ -158,13 +162,15 @@ class BackEnd:
             log.info("%d frames received again, already held", len(frames) - len(new))
         self.frames.extend(new)
 
-    def step(self) -> MapRound:
-        """Initialize on the frames held, or run a mapping round on the newest of them.
+    def step(self, live: bool = False) -> MapRound:
+        """Initialize on the frames held, or run a mapping round on the newest of them; one
+        on `live` frames is short and runs no global refinement (`mapper.live_iters`).
 
         Returns:
             What the round did; `window` names the frames it refined.
         """
         started = time.perf_counter()
+        short = False
         if not self.initialized:
             result = self.mapper.initialize(self.frames)
             self.initialized = True
@@ -178,22 +184,46 @@ class BackEnd:
             window = self.frames
         else:
             window = self.frames[-self.cfg.mapper.every :]
-            self._refine_keyframes(window)
-            result = self.mapper.map(window, self.keyframes)
+            with self._timed("refine"):
+                self._refine_keyframes(window)
+            short = live and self.cfg.mapper.live_iters > 0
+            self.short_rounds += short
+            with self._timed("map"):
+                iters = self.cfg.mapper.live_iters if short else None
+                result = self.mapper.map(window, self.keyframes, iters)
         self._anchor(self._fresh(window))
         every = self.cfg.mapper.global_every
-        if every > 0 and self.rounds > 0 and self.rounds % every == 0:
-            self.refine_global()
-        self._close_loops(window)
-        self._describe(window)
+        if every > 0 and self.rounds > 0 and self.rounds % every == 0 and not short:
+            with self._timed("global"):
+                self.refine_global()
+        with self._timed("loops"):
+            self._close_loops(window)
+        with self._timed("features"):
+            self._describe(window)
         every = self.cfg.bundle.every
         if self.tracks is not None and every > 0:
             if len(self.tracks.keyframes) - self.adjusted_at >= every:
-                self.adjust_keyframes()
+                with self._timed("adjust"):
+                    self.adjust_keyframes()
         self.rounds += 1
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
         return result
+
+    @contextmanager
+    def _timed(self, phase: str):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            seconds = time.perf_counter() - started
+            self.phase_seconds[phase] = self.phase_seconds.get(phase, 0.0) + seconds
+
+    def phases(self) -> str:
+        """Where the mapping rounds' time went: seconds per round of each part, e.g.
+        `map 6.1, global 2.3, loops 0.9` (the initialization's optimization not counted)."""
+        rounds = max(1, self.rounds)
+        return ", ".join(f"{k} {v / rounds:.1f}" for k, v in self.phase_seconds.items())
 
     def _fresh(self, window: list[FrameState]) -> list[FrameState]:
         """The round's `window` (the newest frames held) with every frame received since the
@@ -362,6 +392,14 @@ class BackEnd:
         keyframes = [kf for kf in self.keyframes if kf.index in self.tracks]
         if len(keyframes) < 3:
             return
+        if len(keyframes) < cfg.min_described * len(self.keyframes):
+            log.info(
+                "no feature bundle adjustment: %d of %d keyframes described (under %.0f %%)",
+                len(keyframes),
+                len(self.keyframes),
+                100 * cfg.min_described,
+            )
+            return
         self.adjusted_at = len(self.tracks.keyframes)
         started = time.perf_counter()
         indices = [kf.index for kf in keyframes]
@@ -374,12 +412,14 @@ class BackEnd:
         # The adjustment holds only the first two keyframes, so the path as a whole may come
         # out turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
-        moved = self._move(keyframes, sim3.from_pose(T_new, scales))
+        everyone, nodes = self._with_undescribed(keyframes, T_new, scales)
+        moved = self._move(everyone, nodes)
         log.info(
-            "feature bundle adjustment of %d keyframes: %d points (of %d ORB tracks and %d "
-            "flow tracks), %d observations (%d by guided matching), cost %.1f; keyframes "
-            "moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
+            "feature bundle adjustment of %d keyframes (%d more follow): %d points (of %d "
+            "ORB tracks and %d flow tracks), %d observations (%d by guided matching), cost "
+            "%.1f; keyframes moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
             len(keyframes),
+            len(everyone) - len(keyframes),
             result.points,
             described.points,
             obs.points - described.points,
@@ -393,9 +433,47 @@ class BackEnd:
             time.perf_counter() - started,
         )
         if cfg.refit_iters > 0:
-            order = sorted(range(len(keyframes)), key=lambda k: -moved[k])
-            anchors = [keyframes[k] for k in order[: max(1, cfg.refit_iters // 20)]]
-            self.mapper.post_optimize(keyframes, cfg.refit_iters, anchors=anchors)
+            order = sorted(range(len(everyone)), key=lambda k: -moved[k])
+            anchors = [everyone[k] for k in order[: max(1, cfg.refit_iters // 20)]]
+            self.mapper.post_optimize(everyone, cfg.refit_iters, anchors=anchors)
+
+    def _with_undescribed(
+        self, described: list[FrameState], T_new: torch.Tensor, scales: torch.Tensor
+    ) -> tuple[list[FrameState], torch.Tensor]:
+        """Every keyframe from the first `described` one on, with its Sim(3) node after the
+        adjustment moved the described ones to `T_new` (path growing by `scales` about
+        each). A mapper behind a live camera describes only its rounds' keyframes; a keyframe
+        between two described ones takes the similarity that moved them, interpolated by
+        its place between them (on the Sim(3) geodesic), and one after the last described
+        takes that one's, so that the path stays in one piece. Offline every keyframe is
+        described and this is `described` itself."""
+        moves = [
+            sim3.compose(
+                sim3.from_pose(T_new[k], scales[k]),
+                sim3.invert(sim3.from_pose(kf.T_wc.detach().cpu().double())),
+            )
+            for k, kf in enumerate(described)
+        ]
+        at = {kf.index: k for k, kf in enumerate(described)}
+        everyone, nodes = [], []
+        for kf in self.keyframes:
+            k = at.get(kf.index)
+            if k is not None:
+                everyone.append(kf)
+                nodes.append(sim3.from_pose(T_new[k], scales[k]))
+                continue
+            before = [j for j, d in enumerate(described) if d.index < kf.index]
+            if not before:
+                continue
+            a = before[-1]
+            move = moves[a]
+            if a + 1 < len(described):
+                w = (kf.index - described[a].index) / (described[a + 1].index - described[a].index)
+                step = sim3.log_sim3(sim3.compose(sim3.invert(move), moves[a + 1]))
+                move = sim3.compose(move, sim3.exp_sim3(w * step))
+            everyone.append(kf)
+            nodes.append(sim3.compose(move, sim3.from_pose(kf.T_wc.detach().cpu().double())))
+        return everyone, torch.stack(nodes)
 
     def reanchor(self) -> None:
         """Anchor every non-keyframe held to the keyframe before it (a resumed map)."""

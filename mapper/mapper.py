@@ -185,6 +185,14 @@ class MapperConfig:
         "(0: never).",
     )
     global_iters: int = option(20, "Iterations of a global refinement round.")
+    live_iters: int = option(
+        0,
+        "Service only: iterations of a mapping round on frames from a live camera, which "
+        "also run no global refinement: short rounds keep the map up with the camera, where "
+        "the tracker would run beyond what is mapped and be lost (0: `iters` always; the cpu "
+        "preset: 10, rounds of about 2.3 s instead of 12 on room0 at 10 FPS, docs/results.md, "
+        "session 52).",
+    )
     idle_chunks: int = option(
         20,
         "Service only: short global refinement chunks (a quarter of global_iters each) a "
@@ -212,6 +220,8 @@ class MapperConfig:
             raise ValueError(f"mapper.pose_gate must be in [0, 1], got {self.pose_gate}")
         if self.early_until > 0 and not self.early_patch_sizes:
             raise ValueError("mapper.early_until needs mapper.early_patch_sizes")
+        if self.live_iters < 0:
+            raise ValueError(f"mapper.live_iters must be 0 or more, got {self.live_iters}")
         if self.idle_chunks < 0:
             raise ValueError(f"mapper.idle_chunks must be 0 or more, got {self.idle_chunks}")
 
@@ -508,8 +518,11 @@ class Mapper:
         return result.warp
 
     @_learning
-    def map(self, recent: list[FrameState], keyframes: list[FrameState]) -> MapRound:
-        """One mapping round on the recent frames plus keyframes overlapping the newest."""
+    def map(
+        self, recent: list[FrameState], keyframes: list[FrameState], iters: int | None = None
+    ) -> MapRound:
+        """One mapping round on the recent frames plus keyframes overlapping the newest, of
+        `iters` iterations (default `iters` of the config)."""
         in_recent = {id(f) for f in recent}
         others = [kf for kf in keyframes if id(kf) not in in_recent]
         chosen = overlapping_keyframes(
@@ -531,7 +544,7 @@ class Mapper:
             [f.index != 0 and (self.cfg.move_keyframes or id(f) in in_recent) for f in window],
             self.camera,
             self._sampler(len(window)),
-            self.cfg.iters,
+            self.cfg.iters if iters is None else iters,
             self.cfg.pose_lr,
             self._round_loss(window),
             self.render_cfg,

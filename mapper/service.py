@@ -9,6 +9,8 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
   with more waiting has fallen behind (a live stream) and takes them all into one round (its
   backpressure policy): the round runs on the newest `every` frames plus overlapping
   keyframes, exactly as in one process, so the frames in between keep their tracked poses.
+- A batch of live frames (a live camera) gets a short round: `mapper.live_iters` iterations
+  and no global refinement, so that the map keeps up with the camera.
   Offline runs never fall that far behind (`dimslam-tracker --map-lag`).
 - After each round: a versioned snapshot (map tensors, the poses of every frame received) on
   the map topic, and the refined keyframe poses on the keyframes topic.
@@ -199,7 +201,7 @@ class MapperService:
             n = 1 if len(self.backlog) <= MAX_BACKLOG else len(self.backlog)
             take, self.backlog = self.backlog[:n], self.backlog[n:]
             if take and self._receive(take):
-                self._step(take)
+                self._step(take, live=any(b.live for b in take))
             if self.ended and not self.backlog:
                 self._finish()
                 if self.exit_at_end:
@@ -210,10 +212,12 @@ class MapperService:
         self.mesh_queries.answer_all(self.mesh_ply)
         seconds = self.back.round_seconds if self.back is not None else []
         log.info(
-            "%d rounds (median %.1f s), %d idle refinement chunks, map version %d, "
-            "%d keyframes, %d rejected messages",
+            "%d rounds (%d short on live frames; median %.1f s; seconds a round: %s), "
+            "%d idle refinement chunks, map version %d, %d keyframes, %d rejected messages",
             self.rounds,
+            self.back.short_rounds if self.back is not None else 0,
             float(np.median(seconds)) if seconds else 0.0,
+            self.back.phases() if self.back is not None else "none",
             self.idle_total,
             self.version,
             len(self.keyframes),
@@ -307,10 +311,11 @@ class MapperService:
             self.back.add(from_batch(batch, self.device))
         return self.back is not None and bool(self.frames)
 
-    def _step(self, batches: list[MappingBatch]) -> None:
-        """One round on the frames just received: initialization first, then mapping."""
+    def _step(self, batches: list[MappingBatch], live: bool = False) -> None:
+        """One round on the frames just received: initialization first, then mapping (a
+        short one on `live` frames)."""
         assert self.back is not None
-        self.back.step()
+        self.back.step(live)
         self.idle_chunks = 0
         self._publish(batches[-1].round)
         every = self.checkpoint_every

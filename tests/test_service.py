@@ -194,9 +194,15 @@ def test_realtime_replays_the_sequence_as_a_live_camera(sequence, tmp_path, caps
     """`--realtime`: the camera holds only until the map exists, then sends at the rate and
     never waits; the tracker keeps the newest frame when busy and reports what it did."""
     out = tmp_path / "run"
-    args = ["--preset", "tiny", "--no-mesh", "--realtime", "10"]
+    args = ["--preset", "tiny", "--no-mesh", "--realtime", "10", "--mapper.live_iters", "2"]
+    args += ["--tracker.live_min_inliers", "0.2"]
     assert main(["run", str(sequence), "--out", str(out), *args]) == 0
     assert "frames received" in capsys.readouterr().out
+    # The tracker's batches say the frames are live: the mapper's rounds on them are short.
+    summary = re.search(r"(\d+) rounds \((\d+) short", (out / "mapper.log").read_text())
+    assert summary and 0 < int(summary[2]) == int(summary[1]) - 1  # all but the initialization
+    # The tracker judges a live stream's frames by the live share of inliers.
+    assert "a live stream: a frame is lost under 20 % inliers" in (out / "tracker.log").read_text()
     metrics = json.loads((out / "metrics.json").read_text())
     assert json.loads((out / "config.json").read_text())["realtime_fps"] == 10
     received, processed = metrics["frames_received"], metrics["frames"]

@@ -31,6 +31,7 @@ import math
 import statistics
 from collections import deque
 from collections.abc import Iterable, Mapping
+from dataclasses import replace
 
 import torch
 
@@ -100,6 +101,19 @@ class FrontEnd:
         self.followed: list[tuple[int, torch.Tensor]] = []
         self.init_last = -1  # index of the newest frame the initialization mapped
         self.refined: list[int] = []  # frames solved again by the window objective (`_refine`)
+        self.live = False  # frames come from a live camera (`go_live`)
+
+    def go_live(self) -> None:
+        """The frames from now on come from a live camera: a frame is lost under
+        `tracker.live_min_inliers` of inliers (where set) instead of `min_inliers`. Live, a
+        frame lost where the camera leaves what is mapped stays lost: a lost frame never
+        reaches the mapper, so the map never grows to where the camera went."""
+        self.live = True
+        share = self.cfg.tracker.live_min_inliers
+        if share > 0:
+            self.tracker.cfg = replace(self.tracker.cfg, min_inliers=share)
+        share = self.tracker.cfg.min_inliers
+        log.info("a live stream: a frame is lost under %.0f %% inliers", 100 * share)
 
     @property
     def relocalizing(self) -> bool:

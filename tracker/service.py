@@ -177,6 +177,7 @@ class TrackerService:
         self.map_round = -1
         self.round = 0
         self.init_sent = False
+        self.live = False  # the newest frame came from a live camera (its batches say so)
         self.offset = 0  # internal frame index = camera seq + offset (see `fetch_map`)
         self.handover: tuple[MapSnapshot, MappingBatch] | None = None
         self.mapper_appeared = threading.Event()
@@ -400,6 +401,7 @@ class TrackerService:
                 log.info("end of stream after %d frames", msg.frames)
                 return True
             self.stats.received += 1
+            self.live = msg.live
             if msg.live and len(self.frames_in) > 0:
                 self.stats.skipped_live += 1  # a newer live frame is waiting: this one is stale
                 return False
@@ -407,6 +409,8 @@ class TrackerService:
         except MessageError as e:
             self.rejects("frames", e)
             return False
+        if msg.live and self.front is not None and not self.front.live:
+            self.front.go_live()
         if self.handover is not None:
             self._adopt()
         self.stats.frames += 1
@@ -495,7 +499,7 @@ class TrackerService:
 
     def _send_batch(self, frames: list[FrameState]) -> None:
         assert self.camera is not None
-        payload = to_batch(frames, self.round, self.camera).to_bytes()
+        payload = to_batch(frames, self.round, self.camera, live=self.live).to_bytes()
         self.outbox.append(payload)
         self.uncovered[self.round] = payload
         self.round += 1

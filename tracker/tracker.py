@@ -118,6 +118,14 @@ class TrackerConfig:
     min_inliers: float = option(
         0.3, "direct: share of points within the Huber threshold below which a frame is lost."
     )
+    live_min_inliers: float = option(
+        0.0,
+        "direct: `min_inliers` for frames from a live camera (0: the same). There a frame "
+        "lost where the camera leaves what is mapped stays lost, since a lost frame never "
+        "reaches the mapper; the cpu preset takes 0.2 (room0 at 10 FPS: none lost against "
+        "12-27; offline 0.2 took room5 seed 0 from 7.6 to 14.9 cm; docs/results.md, "
+        "session 52).",
+    )
     max_jump_px: float = option(
         40.0,
         "direct: a solve that moves the view more than this (mean pixels) from the motion "

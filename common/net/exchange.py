@@ -27,9 +27,14 @@ def pose_tensor(T_wc: np.ndarray, device: torch.device) -> torch.Tensor:
 
 
 def to_batch(
-    frames: Iterable[FrameState], round_: int, camera: Camera, keyframes: bool = False
+    frames: Iterable[FrameState],
+    round_: int,
+    camera: Camera,
+    keyframes: bool = False,
+    live: bool = False,
 ) -> MappingBatch:
-    """The frames that still hold an image as a mapping batch (`keyframes`: all flagged)."""
+    """The frames that still hold an image as a mapping batch (`keyframes`: all flagged;
+    `live`: from a live camera)."""
     items = tuple(
         MappingFrame(
             f.index,
@@ -41,7 +46,7 @@ def to_batch(
         for f in frames
         if f.rgb is not None
     )
-    return MappingBatch(round_, items, camera)
+    return MappingBatch(round_, items, camera, live)
 
 
 def from_batch(batch: MappingBatch, device: torch.device) -> list[FrameState]:

@@ -394,12 +394,15 @@ class MappingBatch(Message):
         round: 0 for the initialization batch, then 1, 2, ... consecutively.
         frames: the frames since the previous batch, oldest first.
         camera: intrinsics of every image in the batch.
+        live: the frames came from a live camera (the mapper keeps pace with it:
+            `mapper.live_iters`).
     """
 
     TYPE: ClassVar[str] = "mapping"
     round: int
     frames: tuple[MappingFrame, ...]
     camera: Camera
+    live: bool = False
     stamp_ns: int = field(default_factory=now_ns)
 
     def _body(self) -> dict:
@@ -416,6 +419,7 @@ class MappingBatch(Message):
                 }
                 for f in self.frames
             ],
+            "live": self.live,
             "stamp_ns": self.stamp_ns,
         }
 
@@ -438,7 +442,13 @@ class MappingBatch(Message):
                     _get(item, "keyframe", bool),
                 )
             )
-        return cls(_count(body, "round"), tuple(frames), camera, _count(body, "stamp_ns"))
+        return cls(
+            _count(body, "round"),
+            tuple(frames),
+            camera,
+            _get(body, "live", bool),
+            _count(body, "stamp_ns"),
+        )
 
 
 @dataclass(frozen=True, eq=False)

@@ -211,3 +211,69 @@ def test_frames_a_round_did_not_map_follow_their_keyframes(tmp_path):
     shift = torch.from_numpy(back.trajectory().poses)[:, 0, 3] - before[:, 0, 3]
     assert shift[[6, 7, 8, 18, 19, 20]].tolist() == pytest.approx([0.1] * 6, abs=1e-5)
     assert shift[[5, 9, 17, 21]].abs().max() < 1e-6
+
+
+def test_a_round_on_live_frames_is_short_and_refines_nothing_globally():
+    """Frames from a live camera get `mapper.live_iters` iterations and no global refinement
+    round, so that the map keeps up with the camera; the same round offline gets `iters`."""
+    cfg = apply_overrides(
+        PRESETS["tiny"],
+        {
+            "mapper.iters": "3",
+            "mapper.live_iters": "1",
+            "mapper.global_every": "1",
+            "mapper.global_iters": "2",
+            "mapper.pixels": "64",
+        },
+    )
+    back = BackEnd(cfg, CAM, torch.device("cpu"), torch.Generator().manual_seed(0))
+    frames = [
+        FrameState(i, i / 30, textured_wall_image(moved(0.05 * i)), moved(0.05 * i), i % 2 == 0)
+        for i in range(6)
+    ]
+    back.add(frames)
+    back.initialized = True  # as after the initialization
+    back.rounds = 1  # a global round is due after every mapping round
+    assert back.step(live=True).stats.iterations == 1
+    assert "global" not in back.phase_seconds
+    assert back.step().stats.iterations == 3
+    assert "global" in back.phase_seconds
+    # Off (0): a live round is an offline one.
+    back.cfg = apply_overrides(cfg, {"mapper.live_iters": "0"})
+    back.mapper.cfg = back.cfg.mapper
+    assert back.step(live=True).stats.iterations == 3
+
+
+def test_keyframes_the_features_never_described_follow_the_adjustment(tmp_path):
+    """A mapper behind a live camera describes only the keyframes of its rounds: one between
+    two described keyframes moves as they did, interpolated by its place between them, one
+    after the last described moves with it, so that the adjusted path stays in one piece."""
+    back, frames, truth, drifted = _drifted(tmp_path)
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    back._describe([f for f in frames if f.index % 6 == 0])  # keyframes 0, 6, 12, 18
+    before = {f.index: f.T_wc.clone() for f in frames if f.keyframe}
+    back.adjust_keyframes()
+    # Keyframe 21, after the last described, keeps its pose relative to 18 (offset scaled).
+    rel_before = pose.compose(pose.invert(before[18]), before[21])
+    rel_after = pose.compose(pose.invert(frames[18].T_wc), frames[21].T_wc)
+    assert torch.allclose(rel_after[:3, :3], rel_before[:3, :3], atol=1e-5)
+    scale = rel_after[:3, 3].norm() / rel_before[:3, 3].norm()
+    assert torch.allclose(rel_after[:3, 3], scale * rel_before[:3, 3], atol=1e-5)
+
+    def ratios(T, every):  # each step between every `every`-th frame, against the truth
+        steps = (T[every::every, :3, 3] - T[:-every:every, :3, 3]).norm(dim=1)
+        return steps / (truth[every::every, :3, 3] - truth[:-every:every, :3, 3]).norm(dim=1)
+
+    final = torch.from_numpy(back.trajectory().poses).float()
+    spread = [float(r.max() / r.min()) for r in (ratios(final, 6), ratios(drifted, 6))]
+    assert spread[0] < 1.05 < 1.3 < spread[1]  # the described keyframes at one scale
+    # Every keyframe's step up to the last described one: at one scale within 15 %.
+    steps, drifted_steps = ratios(final, 3)[:-1], ratios(drifted, 3)[:-1]
+    assert (
+        float(steps.max() / steps.min())
+        < 1.15
+        < 1.5
+        < float(drifted_steps.max() / drifted_steps.min())
+    )
