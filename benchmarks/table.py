@@ -33,6 +33,7 @@ import json
 import statistics
 import subprocess
 import sys
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -55,14 +56,17 @@ def _ints(text: str) -> list[int]:
     return values
 
 
-def claim(out: Path, preset: str, sets: dict[str, str]) -> None:
-    """Record the table's settings in `out`, or check that those recorded there are these.
+def claim(
+    out: Path, preset: str, sets: dict[str, str], more: dict | None = None, name: str = SETTINGS
+) -> None:
+    """Record the runs' settings (the preset, `sets` and `more`) in `out/name`, or check that
+    those recorded there are these.
 
     Raises:
         ValueError: `out` holds runs of other settings.
     """
-    mine = {"preset": preset, "set": dict(sorted(sets.items()))}
-    path = out / SETTINGS
+    mine = {"preset": preset, "set": dict(sorted(sets.items())), **(more or {})}
+    path = out / name
     if path.is_file():
         theirs = json.loads(path.read_text())
         if theirs != mine:
@@ -91,32 +95,40 @@ def figures(folder: Path) -> dict | None:
     }
 
 
+def run_logged(
+    folder: Path, args: list[str], read: Callable[[Path], dict | None] = figures
+) -> dict:
+    """`dimslam run ARGS --out FOLDER`, its output in FOLDER.log, unless FOLDER holds a
+    finished run already; the run's figures (`read`), or why there are none."""
+    found = read(folder)
+    if found is not None:
+        return found
+    log = folder.with_suffix(".log")
+    argv = [sys.executable, "-m", "dimslam.common.cli", "run", *args, "--out", str(folder)]
+    print(f"run: {' '.join(argv[3:])}", flush=True)
+    with open(log, "w") as f:
+        code = subprocess.run(argv, stdout=f, stderr=subprocess.STDOUT).returncode
+    found = read(folder)
+    if code != 0 or found is None:
+        return {"error": f"exit {code}, see {log}"}
+    return found
+
+
 def run_one(
     out: Path, dataset: str, stride: int, seed: int, preset: str, sets: dict, report: bool
 ) -> dict:
     """One run (or the one already there); its figures, or why there are none. `report`:
     run nothing, take what is there."""
     folder = run_folder(out, dataset, stride, seed)
-    found = figures(folder)
-    if found is not None:
-        return found
     if report:
-        return {"error": "not run"}
-    log = folder.with_suffix(".log")
-    argv = [
-        sys.executable, "-m", "dimslam.common.cli", "run", dataset, "--out", str(folder),
-        "--preset", preset, "--seed", str(seed), "--stride", str(stride),
+        return figures(folder) or {"error": "not run"}
+    args = [
+        dataset, "--preset", preset, "--seed", str(seed), "--stride", str(stride),
         "--single-process", "--threads", "1", "--no-mesh",
     ]  # fmt: skip
     for key, value in sets.items():
-        argv += [f"--{key}", value]
-    print(f"run: {' '.join(argv[3:])}", flush=True)
-    with open(log, "w") as f:
-        code = subprocess.run(argv, stdout=f, stderr=subprocess.STDOUT).returncode
-    found = figures(folder)
-    if code != 0 or found is None:
-        return {"error": f"exit {code}, see {log}"}
-    return found
+        args += [f"--{key}", value]
+    return run_logged(folder, args)
 
 
 def _ate_cell(run: dict) -> str:

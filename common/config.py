@@ -84,10 +84,12 @@ PRESETS: dict[str, SlamConfig] = {
                 # 7.43, 7-Scenes 4.06 -> 3.86 (docs/results.md, "Global refinement rounds
                 # over whole runs").
                 global_every=2,
-                # Live frames: rounds of 10 iterations and no global refinement, about 2.3 s,
-                # keep the map up with a camera at 10 FPS (room0: rounds of 12 s before, and
-                # the tracker lost beyond the map; docs/results.md, session 52).
-                live_iters=10,
+                # Live frames: rounds of 5 iterations, no global refinement and no features,
+                # about 0.9 s, keep the map up with a camera at 10 FPS (room0: rounds of 12 s
+                # before, and the tracker lost beyond the map; docs/results.md, session 52).
+                # Room0 at 10 FPS, medians of 3 runs: 3 / 5 / 10 / 15 iterations 12.7 / 9.0
+                # / 13.2 / 11.7 cm (`benchmarks/live.py`, docs/results.md, session 53).
+                live_iters=5,
                 init_grow_iters=40,
                 init_iters=200,
                 init_lr_scale=3.0,

@@ -164,7 +164,8 @@ class BackEnd:
 
     def step(self, live: bool = False) -> MapRound:
         """Initialize on the frames held, or run a mapping round on the newest of them; one
-        on `live` frames is short and runs no global refinement (`mapper.live_iters`).
+        on `live` frames is short (`mapper.live_iters`) and runs no global refinement and
+        describes no features.
 
         Returns:
             What the round did; `window` names the frames it refined.
@@ -198,8 +199,9 @@ class BackEnd:
                 self.refine_global()
         with self._timed("loops"):
             self._close_loops(window)
-        with self._timed("features"):
-            self._describe(window)
+        if not short:  # the features serve the end-of-run adjustment (`bundle.min_described`)
+            with self._timed("features"):
+                self._describe(window)
         every = self.cfg.bundle.every
         if self.tracks is not None and every > 0:
             if len(self.tracks.keyframes) - self.adjusted_at >= every:

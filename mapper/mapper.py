@@ -188,10 +188,10 @@ class MapperConfig:
     live_iters: int = option(
         0,
         "Service only: iterations of a mapping round on frames from a live camera, which "
-        "also run no global refinement: short rounds keep the map up with the camera, where "
-        "the tracker would run beyond what is mapped and be lost (0: `iters` always; the cpu "
-        "preset: 10, rounds of about 2.3 s instead of 12 on room0 at 10 FPS, docs/results.md, "
-        "session 52).",
+        "also runs no global refinement and describes no features: short rounds keep the map "
+        "up with the camera, where the tracker would run beyond what is mapped and be lost "
+        "(0: `iters` always; the cpu preset: 5, rounds of about 0.9 s instead of 12 on room0 "
+        "at 10 FPS, docs/results.md, sessions 52-53).",
     )
     idle_chunks: int = option(
         20,

@@ -9,8 +9,8 @@ the final trajectory, post-optimize, mesh); this module adds the exchange:
   with more waiting has fallen behind (a live stream) and takes them all into one round (its
   backpressure policy): the round runs on the newest `every` frames plus overlapping
   keyframes, exactly as in one process, so the frames in between keep their tracked poses.
-- A batch of live frames (a live camera) gets a short round: `mapper.live_iters` iterations
-  and no global refinement, so that the map keeps up with the camera.
+- A batch of live frames (a live camera) gets a short round: `mapper.live_iters` iterations,
+  no global refinement and no features described, so that the map keeps up with the camera.
   Offline runs never fall that far behind (`dimslam-tracker --map-lag`).
 - After each round: a versioned snapshot (map tensors, the poses of every frame received) on
   the map topic, and the refined keyframe poses on the keyframes topic.

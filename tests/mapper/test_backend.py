@@ -214,11 +214,13 @@ def test_frames_a_round_did_not_map_follow_their_keyframes(tmp_path):
 
 
 def test_a_round_on_live_frames_is_short_and_refines_nothing_globally():
-    """Frames from a live camera get `mapper.live_iters` iterations and no global refinement
-    round, so that the map keeps up with the camera; the same round offline gets `iters`."""
+    """Frames from a live camera get `mapper.live_iters` iterations, no global refinement
+    round and no feature description, so that the map keeps up with the camera; the same
+    round offline gets `iters` and describes its keyframes."""
     cfg = apply_overrides(
         PRESETS["tiny"],
         {
+            "bundle.enabled": "true",
             "mapper.iters": "3",
             "mapper.live_iters": "1",
             "mapper.global_every": "1",
@@ -236,8 +238,10 @@ def test_a_round_on_live_frames_is_short_and_refines_nothing_globally():
     back.rounds = 1  # a global round is due after every mapping round
     assert back.step(live=True).stats.iterations == 1
     assert "global" not in back.phase_seconds
+    assert back.tracks is not None and not back.tracks.keyframes
     assert back.step().stats.iterations == 3
     assert "global" in back.phase_seconds
+    assert back.tracks.keyframes  # the offline round's keyframes are described
     # Off (0): a live round is an offline one.
     back.cfg = apply_overrides(cfg, {"mapper.live_iters": "0"})
     back.mapper.cfg = back.cfg.mapper
