@@ -72,7 +72,9 @@ PRESETS: dict[str, SlamConfig] = {
             # Live, a frame under 30 % inliers where the map is young is lost to the end of
             # the stream; 20 %: room0 at 10 FPS 91-95 % of frames tracked, none lost
             # (docs/results.md, session 52).
-            tracker=TrackerConfig(levels=2, min_views=4, live_min_inliers=0.2),
+            # A live map renders one keyframe at once, the others as frames use them: fewer
+            # frames dropped while the tracker renders (docs/results.md, session 53).
+            tracker=TrackerConfig(levels=2, min_views=4, live_min_inliers=0.2, live_map_renders=1),
             mapper=MapperConfig(
                 pixels=600,
                 iters=50,

@@ -137,14 +137,18 @@ class DirectTracker:
 
     # -- references ---------------------------------------------------------------------------
 
-    def map_changed(self, field: FieldFn, keyframes: list[FrameState], version: int) -> int:
-        """A new map: render the newest keyframes' references again. Returns how many."""
+    def map_changed(
+        self, field: FieldFn, keyframes: list[FrameState], version: int, renders: int = 0
+    ) -> int:
+        """A new map: render the `renders` newest keyframes' references again (0:
+        `tracker.references`; the others wait for a frame to use them, `tracker.refresh`).
+        Returns how many."""
         self.version = version
         keep = {kf.index for kf in keyframes}
         for index in [i for i in self.references if i not in keep]:
             del self.references[index]  # no longer a keyframe (a new stream, a reset)
         rendered = 0
-        for kf in keyframes[-self.cfg.references :]:
+        for kf in keyframes[-(renders or self.cfg.references) :]:
             if kf.rgb is not None and self._stale(kf):
                 self.render(field, kf)
                 rendered += 1

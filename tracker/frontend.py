@@ -104,7 +104,8 @@ class FrontEnd:
         self.live = False  # frames come from a live camera (`go_live`)
 
     def go_live(self) -> None:
-        """The frames from now on come from a live camera: a frame is lost under
+        """The frames from now on come from a live camera: a new map renders only
+        `tracker.live_map_renders` keyframes at once (where set), and a frame is lost under
         `tracker.live_min_inliers` of inliers (where set) instead of `min_inliers`. Live, a
         frame lost where the camera leaves what is mapped stays lost: a lost frame never
         reaches the mapper, so the map never grows to where the camera went."""
@@ -325,8 +326,10 @@ class FrontEnd:
 
     def map_changed(self, field: FieldFn, version: int) -> int:
         """A new map (after a mapping round, or a snapshot swapped in): let the solver refresh
-        what it caches of it. Returns how many keyframes it rendered."""
-        return self.tracker.map_changed(field, self.keyframes, version)
+        what it caches of it (live: `tracker.live_map_renders` keyframes at once). Returns how
+        many keyframes it rendered."""
+        renders = self.cfg.tracker.live_map_renders if self.live else 0
+        return self.tracker.map_changed(field, self.keyframes, version, renders)
 
     def batch_due(self) -> bool:
         """Whether the frames tracked since the last hand-over make a mapping round: every

@@ -118,6 +118,15 @@ class TrackerConfig:
     min_inliers: float = option(
         0.3, "direct: share of points within the Huber threshold below which a frame is lost."
     )
+    live_map_renders: int = option(
+        0,
+        "direct: for frames from a live camera, how many of the newest keyframes are rendered "
+        "again as soon as a new map arrives (0: `references`, as offline); the others are "
+        "rendered when a frame uses them (`refresh` a frame). Live, a map arrives about every "
+        "second, and six renders at once (about 120 ms on one core) made the tracker drop the "
+        "frames that came meanwhile; the cpu preset takes 1 (room0 at 10 FPS, 3 runs: 3-18 "
+        "frames dropped against 10-46; docs/results.md, session 53).",
+    )
     live_min_inliers: float = option(
         0.0,
         "direct: `min_inliers` for frames from a live camera (0: the same). There a frame "
@@ -341,7 +350,9 @@ class Tracker:
 
         return objective
 
-    def map_changed(self, field: FieldFn, keyframes: list[FrameState], version: int) -> int:
+    def map_changed(
+        self, field: FieldFn, keyframes: list[FrameState], version: int, renders: int = 0
+    ) -> int:
         """A new map: nothing is cached here (every step renders what it needs). Returns 0."""
         return 0
 

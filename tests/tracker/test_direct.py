@@ -285,3 +285,16 @@ def test_a_window_that_sees_none_of_the_points_loses_the_frame_without_a_solve()
         warnings.simplefilter("error")  # no 0 / 0 on an empty level
         with pytest.raises(TrackingLost, match="0 points seen by enough of the window"):
             t.track(wall, [*window, frame], [])
+
+
+def test_a_live_map_renders_the_newest_keyframe_at_once_and_the_others_as_frames_use_them():
+    """`renders` (`tracker.live_map_renders`): a new map re-renders only the newest keyframes
+    at once; an older one a frame is tracked against follows at that frame (`refresh`)."""
+    t = solver(references=2, refresh=1)
+    kfs = [keyframe(KF, 0), keyframe(TRUTH, 1)]
+    assert t.map_changed(wall, kfs, version=1) == 2
+    assert t.map_changed(wall, kfs, version=2, renders=1) == 1
+    assert t.references[1].version == 2 and t.references[0].version == 1
+    frame = FrameState(2, 0.0, textured_wall_image(TRUTH, CAM), TRUTH.clone())
+    result = t.track(wall, [frame], kfs)
+    assert result.stats.rendered == 1 and t.references[0].version == 2

@@ -178,3 +178,17 @@ def test_a_turn_the_images_see_is_kept_where_only_hidden_turns_are_solved_again(
     seen_turn = f._turn_seen(truth[3], pose.compose(truth[3], turn), f.keyframes)
     seen_slide = f._turn_seen(truth[3], pose.compose(truth[3], slide), f.keyframes)
     assert seen_turn > 0.9 and seen_slide < 0.2
+
+
+def test_a_live_stream_renders_a_new_map_s_newest_keyframe_at_once():
+    """`go_live` with `tracker.live_map_renders`: a new map re-renders that many keyframes
+    at once, where offline every one of the `references` newest is."""
+    cfg = PRESETS["tiny"]
+    cfg = replace(cfg, tracker=replace(cfg.tracker, references=3, live_map_renders=1))
+    f = FrontEnd(cfg, CAM, torch.Generator().manual_seed(0))
+    for i in range(3):
+        T = pose.exp_se3(torch.tensor([0.02 * i, 0.0, 0.0, 0.0, 0.0, 0.0]))
+        f.frames.append(FrameState(i, i / 30, textured_wall_image(T), T, keyframe=True))
+    assert f.map_changed(wall, version=1) == 3
+    f.go_live()
+    assert f.map_changed(wall, version=2) == 1
