@@ -80,6 +80,10 @@ def _cm(metres: float | None) -> str:
     return "-" if metres is None else f"{100 * metres:.2f} cm"
 
 
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f} ms"
+
+
 def _median(runs: list[dict], key: str) -> float | None:
     values = [r[key] for r in runs if r.get(key) is not None]
     return statistics.median(values) if values else None
@@ -96,13 +100,15 @@ def report(live: list[dict], offline: dict) -> tuple[str, dict]:
         if "error" in r:
             rows.append(f"| live {k} | failed ({r['error']}) |" + " |" * 8)
             continue
-        share = r["tracked"] / r["frames"] if r["tracked"] is not None else None
+        tracked = "-" if r["tracked"] is None else f"{r['tracked']} "
+        if r["tracked"] is not None:
+            tracked += f"({100 * r['tracked'] / r['frames']:.0f} %)"
         spread = "-" if r["spread"] is None else f"{100 * r['spread']:.1f} %"
         counted = f"{r['rounds']} ({r['round_s']:.1f} s)" if "rounds" in r else "-"
         rows.append(
-            f"| live {k} | {r['tracked']} ({100 * share:.0f} %) | {r['dropped']} | {r['lost']} "
+            f"| live {k} | {tracked} | {r['dropped']} | {r['lost']} "
             f"| {_cm(r['ate_m'])} | {_cm(r['online_ate_m'])} | {spread} | {counted} "
-            f"| {r['track_ms_p50']:.0f} ms | {r['latency_ms_p50']:.0f} ms |"
+            f"| {_ms(r['track_ms_p50'])} | {_ms(r['latency_ms_p50'])} |"
         )
     done = [r for r in live if "error" not in r]
     summary = {
