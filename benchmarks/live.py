@@ -70,6 +70,8 @@ def figures(folder: Path) -> dict | None:
         "track_ms_p50": m.get("track_ms_p50"),
         "latency_ms_p50": m.get("latency_ms_p50"),
     }
+    if found["tracked"] is not None:
+        found["share"] = found["tracked"] / found["frames"]
     counted = rounds(folder)
     if counted is not None:
         found["rounds"], found["round_s"] = counted
@@ -100,9 +102,7 @@ def report(live: list[dict], offline: dict) -> tuple[str, dict]:
         if "error" in r:
             rows.append(f"| live {k} | failed ({r['error']}) |" + " |" * 8)
             continue
-        tracked = "-" if r["tracked"] is None else f"{r['tracked']} "
-        if r["tracked"] is not None:
-            tracked += f"({100 * r['tracked'] / r['frames']:.0f} %)"
+        tracked = f"{r['tracked']} ({100 * r['share']:.0f} %)" if "share" in r else "-"
         spread = "-" if r["spread"] is None else f"{100 * r['spread']:.1f} %"
         counted = f"{r['rounds']} ({r['round_s']:.1f} s)" if "rounds" in r else "-"
         rows.append(
@@ -114,9 +114,7 @@ def report(live: list[dict], offline: dict) -> tuple[str, dict]:
     summary = {
         "runs": len(live),
         "failed": len(live) - len(done),
-        "tracked_share_median": _median(
-            [{"s": r["tracked"] / r["frames"]} for r in done if r["tracked"] is not None], "s"
-        ),
+        "tracked_share_median": _median(done, "share"),
         "ate_m_median": _median(done, "ate_m"),
         "online_ate_m_median": _median(done, "online_ate_m"),
         "offline_ate_m": offline.get("ate_m"),
