@@ -649,7 +649,9 @@ class Mapper:
             if anchors:
                 anchor, turn = anchors[turn % len(anchors)], turn + 1
             else:
-                pick = torch.randint(len(keyframes), (1,), generator=self.generator)
+                pick = torch.randint(
+                    len(keyframes), (1,), generator=self.generator, device=self.generator.device
+                )
                 anchor = keyframes[int(pick)]
             others = [kf for kf in keyframes if kf is not anchor]
             chosen = overlapping_keyframes(

@@ -334,9 +334,13 @@ class DirectTracker:
         with `views`, only those that more than `tracker.min_views` of them see (`_seen`)."""
         p_w = torch.cat([r.world() for r in refs])
         ref_of = torch.cat(
-            [torch.full((len(r.p_k),), k, dtype=torch.long) for k, r in enumerate(refs)]
+            [
+                torch.full((len(r.p_k),), k, dtype=torch.long, device=p_w.device)
+                for k, r in enumerate(refs)
+            ]
         )
-        order = torch.randperm(len(p_w), generator=self.generator)
+        order = torch.randperm(len(p_w), generator=self.generator, device=self.generator.device)
+        order = order.to(p_w.device)
         if views is not None:
             keep = self._seen(p_w, ref_of, refs, views)
             order = order[keep[order]]
@@ -357,7 +361,8 @@ class DirectTracker:
         mask over the tracking window. A part of the scene only the newest frames have seen
         (where the map has had the least time to form) does not pull the pose."""
         _, inside = self._view(p_w, pose.invert(torch.stack([v.T_wc for v in views])))  # (V, N)
-        own = torch.tensor([[v is r.keyframe for r in refs] for v in views])[:, ref_of]
+        own = torch.tensor([[v is r.keyframe for r in refs] for v in views], device=p_w.device)
+        own = own[:, ref_of]
         count = (inside & ~own).sum(0)
         return count > min(self.cfg.min_views, len(views) - 2)
 

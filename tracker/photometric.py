@@ -134,8 +134,8 @@ class LevelProblem:
             self.A = torch.cat([-centred[..., None] * onehot, -onehot], dim=2).flatten(0, 1)
 
     def evaluate(self, T_cw: np.ndarray, ab: np.ndarray) -> Evaluation:
-        R = torch.from_numpy(T_cw[:3, :3]).to(self.p_w.dtype)
-        t = torch.from_numpy(T_cw[:3, 3]).to(self.p_w.dtype)
+        R = torch.from_numpy(T_cw[:3, :3]).to(self.p_w.device, self.p_w.dtype)
+        t = torch.from_numpy(T_cw[:3, 3]).to(self.p_w.device, self.p_w.dtype)
         p_c = torch.addmm(t, self.p_w, R.T)
         x, y, z = p_c.unbind(1)
         inv_z = 1.0 / z.clamp_min(1e-3)
@@ -147,8 +147,8 @@ class LevelProblem:
         grid = torch.stack([u * sx - 1.0, v * sy - 1.0], dim=-1).view(1, 1, -1, 2)
         sample = F.grid_sample(self.chw, grid, mode="bilinear", align_corners=True)[0, :, 0]
         c = self.centred.shape[1]
-        gains = torch.from_numpy(ab[:, 0]).to(self.p_w.dtype)[self.ref_of, None]
-        offsets = torch.from_numpy(ab[:, 1]).to(self.p_w.dtype)[self.ref_of, None]
+        gains = torch.from_numpy(ab[:, 0]).to(self.p_w.device, self.p_w.dtype)[self.ref_of, None]
+        offsets = torch.from_numpy(ab[:, 1]).to(self.p_w.device, self.p_w.dtype)[self.ref_of, None]
         r = sample[:c].T - (gains * self.centred + self.mean + offsets)  # (N, C)
         k = self.huber
         a = r.abs()
@@ -175,8 +175,8 @@ class LevelProblem:
             J = torch.cat([J, self.A], dim=1)
         Jw = J * e.w.reshape(-1, 1)
         n = e.r.numel()
-        H = (Jw.T @ J).double().numpy() / n
-        g = (Jw.T @ e.r.reshape(-1)).double().numpy() / n
+        H = (Jw.T @ J).double().cpu().numpy() / n
+        g = (Jw.T @ e.r.reshape(-1)).double().cpu().numpy() / n
         if self.affine:
             H[6:, 6:] += BRIGHTNESS_PRIOR * np.eye(H.shape[0] - 6)
             g[6:] += BRIGHTNESS_PRIOR * (ab - PRIOR_BRIGHTNESS).T.reshape(-1)
