@@ -4,6 +4,7 @@ offline run of the same sequence and seed.
     python benchmarks/live.py ../shared/data/room0 --out out/live
     python benchmarks/live.py ../shared/data/room0 --out out/live30 --fps 30 --repeats 5
     python benchmarks/live.py ../shared/data/room0 --out out/live_k --set mapper.live_iters=15
+    python benchmarks/live.py ../shared/data/room0 --out out/live_gpu --device cuda:0
 
 Runs `dimslam run DATASET --realtime FPS --seed S --no-mesh` (the service: mapper and tracker
 one thread each, the camera paced, a busy tracker keeping only the newest frame) `--repeats`
@@ -149,6 +150,9 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of every run (0)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     parser.add_argument(
+        "--device", default="cpu", help="cpu or cuda:N, for both processes and the offline run"
+    )
+    parser.add_argument(
         "--set",
         action="append",
         default=[],
@@ -165,11 +169,14 @@ def main() -> int:
     sets = dict(args.set)
     overrides_or_exit(parser, PRESETS[args.preset], sets)  # an unknown key or a wrong type
     more = {"dataset": str(Path(args.dataset).resolve()), "fps": args.fps, "seed": args.seed}
+    if args.device != "cpu":  # folders made before the option hold CPU runs
+        more["device"] = args.device
     try:
         claim(args.out, args.preset, sets, more, SETTINGS)
     except ValueError as e:
         parser.error(str(e))
     common = [args.dataset, "--preset", args.preset, "--seed", str(args.seed), "--no-mesh"]
+    common += ["--device", args.device]
     for key, value in sets.items():
         common += [f"--{key}", value]
     offline = run_logged(

@@ -45,6 +45,9 @@ def test_live_runs_beside_the_offline_run_resume_and_refuse_other_settings(
     # The same folder at another rate would mix two benchmarks.
     said = usage_error(monkeypatch, capsys, live.main, [*argv, "--fps", "30"])
     assert "holds runs of other settings" in said
+    # So would runs on another device.
+    said = usage_error(monkeypatch, capsys, live.main, [*argv, "--device", "cuda:0"])
+    assert "holds runs of other settings" in said
 
 
 def test_bad_arguments_are_refused_before_anything_runs(live, tmp_path, monkeypatch, capsys):
