@@ -147,8 +147,8 @@ class LevelProblem:
         grid = torch.stack([u * sx - 1.0, v * sy - 1.0], dim=-1).view(1, 1, -1, 2)
         sample = F.grid_sample(self.chw, grid, mode="bilinear", align_corners=True)[0, :, 0]
         c = self.centred.shape[1]
-        gains = torch.from_numpy(ab[:, 0]).to(self.p_w.device, self.p_w.dtype)[self.ref_of, None]
-        offsets = torch.from_numpy(ab[:, 1]).to(self.p_w.device, self.p_w.dtype)[self.ref_of, None]
+        brightness = torch.from_numpy(ab).to(self.p_w.device, self.p_w.dtype)[self.ref_of]
+        gains, offsets = brightness[:, :1], brightness[:, 1:]  # (N, 1) each
         r = sample[:c].T - (gains * self.centred + self.mean + offsets)  # (N, C)
         k = self.huber
         a = r.abs()
