@@ -134,8 +134,8 @@ class LevelProblem:
             self.A = torch.cat([-centred[..., None] * onehot, -onehot], dim=2).flatten(0, 1)
 
     def evaluate(self, T_cw: np.ndarray, ab: np.ndarray) -> Evaluation:
-        R = torch.from_numpy(T_cw[:3, :3]).to(self.p_w.device, self.p_w.dtype)
-        t = torch.from_numpy(T_cw[:3, 3]).to(self.p_w.device, self.p_w.dtype)
+        T = torch.from_numpy(T_cw).to(self.p_w.device, self.p_w.dtype)
+        R, t = T[:3, :3], T[:3, 3]
         p_c = torch.addmm(t, self.p_w, R.T)
         x, y, z = p_c.unbind(1)
         inv_z = 1.0 / z.clamp_min(1e-3)
