@@ -12,7 +12,8 @@ a wrong depth), it starts again from poses of corners tracked through the frames
 (`mapper/bootstrap.py`) and keeps whichever of the two fits the images better.
 
 A mapping round optimizes grids, decoder and the poses of its window (keyframes overlapping the
-newest frame plus the frames since the last round; frame 0 stays fixed) on random pixels.
+newest frame plus the frames since the last round; frame 0 stays fixed, `hold_first`) on
+random pixels.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import torch
@@ -112,6 +114,22 @@ class MapperConfig:
     )
     move_keyframes: bool = option(
         True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
+    )
+    move_span: int = option(
+        0,
+        "Mapping and global rounds: a keyframe more than this many frames older than its "
+        "window's newest frame is held (0: every keyframe but frame 0 moves). Where the "
+        "camera comes back to a place it mapped long before, the old keyframes there would "
+        "otherwise be dragged towards the drifted present while frame 0 stays.",
+    )
+    hold_first: bool = option(
+        True,
+        "Mapping and global rounds never move frame 0's pose (False: it moves as any "
+        "keyframe, and the map holds the gauge). Where the camera comes back to its start, "
+        "those rounds move the keyframes there towards the drifted present, and a held frame "
+        "0 is left behind with the frames anchored to it: 7-Scenes seeds 1 / 2 on the AMD "
+        "machine 11.42 / 8.13 cm held, 5.24 / 4.76 not (docs/results.md, 'Frame 0 left "
+        "behind').",
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     early_patch_sizes: tuple[int, ...] = option(
@@ -541,7 +559,7 @@ class Mapper:
         stats = optimize_window(
             self.field,
             window,
-            [f.index != 0 and (self.cfg.move_keyframes or id(f) in in_recent) for f in window],
+            self._movable(window, lambda f: self.cfg.move_keyframes or id(f) in in_recent),
             self.camera,
             self._sampler(len(window)),
             self.cfg.iters if iters is None else iters,
@@ -557,6 +575,19 @@ class Mapper:
             pose_gate=self.cfg.pose_gate,
         )
         return MapRound(stats, tuple(f.index for f in window))
+
+    def _movable(self, window: list[FrameState], moves: Callable[[FrameState], bool]) -> list[bool]:
+        """Which poses of `window` an optimization moves: those `moves` allows, not frame 0's
+        (`hold_first`), nor a keyframe more than `move_span` frames older than the window's
+        newest."""
+        newest = max(f.index for f in window)
+        span = self.cfg.move_span
+        return [
+            (f.index != 0 or not self.cfg.hold_first)
+            and (span <= 0 or newest - f.index <= span)
+            and moves(f)
+            for f in window
+        ]
 
     def _round_loss(self, frames: list[FrameState]) -> LossConfig:
         """The objective of an optimization of the map seen by `frames` (`early_until`)."""
@@ -640,8 +671,8 @@ class Mapper:
         """Refinement over all keyframes (paper appendix): `iters` iterations (default
         `post_iters`) in windows of `chunk` iterations, each of a keyframe and the keyframes
         overlapping it: `anchors` in turn, random keyframes without them. Map only, or with
-        the keyframes' poses (`poses`; frame 0 stays). Also refits the map where a loop
-        closure moved keyframes."""
+        the keyframes' poses (`poses`; frame 0 stays with `hold_first`). Also refits the map
+        where a loop closure moved keyframes."""
         stats = None
         remaining = self.cfg.post_iters if iters is None else iters
         turn = 0
@@ -671,7 +702,7 @@ class Mapper:
             stats = optimize_window(
                 self.field,
                 window,
-                [poses and f.index != 0 for f in window],
+                self._movable(window, lambda _: poses),
                 self.camera,
                 self._sampler(len(window)),
                 min(chunk, remaining),
