@@ -115,13 +115,6 @@ class MapperConfig:
     move_keyframes: bool = option(
         True, "Mapping rounds move the older keyframes' poses too (False: they anchor)."
     )
-    move_span: int = option(
-        0,
-        "Mapping and global rounds: a keyframe more than this many frames older than its "
-        "window's newest frame is held (0: every keyframe but frame 0 moves). Where the "
-        "camera comes back to a place it mapped long before, the old keyframes there would "
-        "otherwise be dragged towards the drifted present while frame 0 stays.",
-    )
     hold_first: bool = option(
         True,
         "Mapping and global rounds never move frame 0's pose (False: it moves as any "
@@ -577,17 +570,9 @@ class Mapper:
         return MapRound(stats, tuple(f.index for f in window))
 
     def _movable(self, window: list[FrameState], moves: Callable[[FrameState], bool]) -> list[bool]:
-        """Which poses of `window` an optimization moves: those `moves` allows, not frame 0's
-        (`hold_first`), nor a keyframe more than `move_span` frames older than the window's
-        newest."""
-        newest = max(f.index for f in window)
-        span = self.cfg.move_span
-        return [
-            (f.index != 0 or not self.cfg.hold_first)
-            and (span <= 0 or newest - f.index <= span)
-            and moves(f)
-            for f in window
-        ]
+        """Which poses of `window` an optimization moves: those `moves` allows, but not
+        frame 0's (`hold_first`)."""
+        return [(f.index != 0 or not self.cfg.hold_first) and moves(f) for f in window]
 
     def _round_loss(self, frames: list[FrameState]) -> LossConfig:
         """The objective of an optimization of the map seen by `frames` (`early_until`)."""

@@ -134,36 +134,6 @@ def test_the_initial_plane_stops_the_rays_when_depth_is_normalized():
     assert opacity[False] < 0.8
 
 
-def test_keyframes_older_than_the_span_are_held_in_mapping_and_global_rounds():
-    """With `move_span`, a keyframe more than that many frames older than its window's newest
-    frame keeps its pose, in a mapping round and in a global one: a camera back at a place
-    it mapped long before does not drag the old keyframes there towards its present."""
-    indices = [1, 2, 30, 31, 32, 33]
-    poses = [pose.make_pose(torch.eye(3), torch.tensor([0.05 * i, 0.0, 0.0])) for i in range(6)]
-
-    def frames() -> list[FrameState]:
-        return [
-            FrameState(k, k / 30, textured_wall_image(T), T.clone(), keyframe=i < 3)
-            for i, (k, T) in enumerate(zip(indices, poses, strict=True))
-        ]
-
-    for span, held in ((0, set()), (30, {1, 2}), (31, {1})):
-        torch.manual_seed(0)
-        mapped = frames()
-        m = mapper(pixels=64, iters=3, window_keyframes=3, move_span=span)
-        done = m.map(mapped[3:], mapped[:3])
-        assert set(done.window) == set(indices)
-        moved = {f.index for f, T in zip(mapped, poses, strict=True) if not torch.equal(f.T_wc, T)}
-        assert moved == set(indices) - held
-
-        torch.manual_seed(0)
-        refined = frames()
-        m = mapper(pixels=64, move_span=span)
-        m.post_optimize(refined, iters=2, chunk=2, anchors=[refined[-1]], poses=True)
-        moved = {f.index for f, T in zip(refined, poses, strict=True) if not torch.equal(f.T_wc, T)}
-        assert moved == set(indices) - held
-
-
 def test_frame_0_moves_in_mapping_and_global_rounds_unless_held():
     """`hold_first` (the default) keeps frame 0's pose in mapping and global rounds; without
     it frame 0 moves as any keyframe of the window."""
