@@ -120,9 +120,10 @@ class MapperConfig:
         "Mapping and global rounds never move frame 0's pose (False: it moves as any "
         "keyframe, and the map holds the gauge). Where the camera comes back to its start, "
         "those rounds move the keyframes there towards the drifted present, and a held frame "
-        "0 is left behind with the frames anchored to it: 7-Scenes seeds 1 / 2 on the AMD "
-        "machine 11.42 / 8.13 cm held, 5.24 / 4.76 not (docs/results.md, 'Frame 0 left "
-        "behind').",
+        "0 is left behind with the frames anchored to it. Held by default: False on the AMD "
+        "machine took 7-Scenes from 8.17 to 4.88 cm (3 seeds), room3 seed 1 from 13.48 to "
+        "4.70, but room0 seeds 0 / 2 from 4.07 / 2.15 to 5.55 / 3.36 (docs/results.md, "
+        "'Frame 0 left behind').",
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     early_patch_sizes: tuple[int, ...] = option(
