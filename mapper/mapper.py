@@ -21,7 +21,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import torch
@@ -553,7 +552,7 @@ class Mapper:
         stats = optimize_window(
             self.field,
             window,
-            self._movable(window, lambda f: self.cfg.move_keyframes or id(f) in in_recent),
+            [self._free(f) and (self.cfg.move_keyframes or id(f) in in_recent) for f in window],
             self.camera,
             self._sampler(len(window)),
             self.cfg.iters if iters is None else iters,
@@ -570,10 +569,9 @@ class Mapper:
         )
         return MapRound(stats, tuple(f.index for f in window))
 
-    def _movable(self, window: list[FrameState], moves: Callable[[FrameState], bool]) -> list[bool]:
-        """Which poses of `window` an optimization moves: those `moves` allows, but not
-        frame 0's (`hold_first`)."""
-        return [(f.index != 0 or not self.cfg.hold_first) and moves(f) for f in window]
+    def _free(self, f: FrameState) -> bool:
+        """Whether an optimization may move the frame's pose: not frame 0's (`hold_first`)."""
+        return f.index != 0 or not self.cfg.hold_first
 
     def _round_loss(self, frames: list[FrameState]) -> LossConfig:
         """The objective of an optimization of the map seen by `frames` (`early_until`)."""
@@ -688,7 +686,7 @@ class Mapper:
             stats = optimize_window(
                 self.field,
                 window,
-                self._movable(window, lambda _: poses),
+                [poses and self._free(f) for f in window],
                 self.camera,
                 self._sampler(len(window)),
                 min(chunk, remaining),
