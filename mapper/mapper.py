@@ -121,8 +121,8 @@ class MapperConfig:
         "those rounds move the keyframes there towards the drifted present, and a held frame "
         "0 is left behind with the frames anchored to it. Held by default: False on the AMD "
         "machine took 7-Scenes from 8.17 to 4.88 cm and room3 from 6.83 to 3.25 (3 seeds "
-        "each), but room0 seeds 0 / 2 from 4.07 / 2.15 to 5.55 / 3.36 and room5 from 6.62 "
-        "to 8.84 (docs/results.md, 'Frame 0 left behind').",
+        "each), but room0 from 3.47 to 3.62 and room5 from 6.62 to 8.84 (docs/results.md, "
+        "'Frame 0 left behind').",
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     early_patch_sizes: tuple[int, ...] = option(
