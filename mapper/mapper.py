@@ -124,12 +124,6 @@ class MapperConfig:
         "each), but room0 from 3.47 to 3.62 and room5 from 6.62 to 8.84 (docs/results.md, "
         "'Frame 0 left behind').",
     )
-    hold_first_until: int = option(
-        0,
-        "With `hold_first`, frame 0 is held only in rounds whose newest frame comes before "
-        "this one, while the path is young; after it the map holds the gauge (0: the whole "
-        "run).",
-    )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
     early_patch_sizes: tuple[int, ...] = option(
         (),
@@ -558,10 +552,7 @@ class Mapper:
         stats = optimize_window(
             self.field,
             window,
-            [
-                self._free(f, recent[-1].index) and (self.cfg.move_keyframes or id(f) in in_recent)
-                for f in window
-            ],
+            [self._free(f) and (self.cfg.move_keyframes or id(f) in in_recent) for f in window],
             self.camera,
             self._sampler(len(window)),
             self.cfg.iters if iters is None else iters,
@@ -578,13 +569,9 @@ class Mapper:
         )
         return MapRound(stats, tuple(f.index for f in window))
 
-    def _free(self, f: FrameState, newest: int) -> bool:
-        """Whether an optimization whose newest frame is `newest` may move the frame's pose:
-        not frame 0's (`hold_first`, until `hold_first_until`)."""
-        held = self.cfg.hold_first and (
-            self.cfg.hold_first_until == 0 or newest < self.cfg.hold_first_until
-        )
-        return f.index != 0 or not held
+    def _free(self, f: FrameState) -> bool:
+        """Whether an optimization may move the frame's pose: not frame 0's (`hold_first`)."""
+        return f.index != 0 or not self.cfg.hold_first
 
     def _round_loss(self, frames: list[FrameState]) -> LossConfig:
         """The objective of an optimization of the map seen by `frames` (`early_until`)."""
@@ -671,7 +658,6 @@ class Mapper:
         the keyframes' poses (`poses`; frame 0 stays with `hold_first`). Also refits the map
         where a loop closure moved keyframes."""
         stats = None
-        newest = max((kf.index for kf in keyframes), default=0)
         remaining = self.cfg.post_iters if iters is None else iters
         turn = 0
         while remaining > 0 and len(keyframes) > 1:
@@ -700,7 +686,7 @@ class Mapper:
             stats = optimize_window(
                 self.field,
                 window,
-                [poses and self._free(f, newest) for f in window],
+                [poses and self._free(f) for f in window],
                 self.camera,
                 self._sampler(len(window)),
                 min(chunk, remaining),
