@@ -8,6 +8,7 @@ path is cut into consecutive segments of `--segment` matched poses and each is a
 own (`common/eval/drift.py`). Per segment it prints:
 
 - *global err*: mean error of the segment's poses under the one global alignment;
+- *share*: the segment's part of the whole trajectory's squared error (of the ATE's square);
 - *local ATE*: RMSE after the segment's own Sim(3): how well the segment is tracked in itself;
 - *local scale*: the segment's own scale relative to the global one (1: no scale drift);
 - *path* and *turn*: ground-truth distance travelled and rotation turned within the segment.
@@ -66,10 +67,10 @@ def main() -> None:
         f"RPE {whole.rpe_trans_per_m:.3f} m/m, {whole.matched} poses, "
         f"segment scale spread {100 * scale_spread(rows):.1f} %"
     )
-    print("frames   | global err | local ATE | local scale | path   | turn")
+    print("frames   | global err | share | local ATE | local scale | path   | turn")
     for r in rows:
         print(
-            f"{r.first:3d}-{r.last:3d}  | {100 * r.global_err_m:7.2f} cm "
+            f"{r.first:3d}-{r.last:3d}  | {100 * r.global_err_m:7.2f} cm | {100 * r.share:3.0f} % "
             f"| {100 * r.local_ate_m:6.2f} cm | {r.local_scale:11.3f} "
             f"| {100 * r.path_m:4.0f} cm | {r.turn_deg:4.0f} deg"
         )

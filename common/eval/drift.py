@@ -41,6 +41,8 @@ class Segment:
     Attributes:
         first, last: indices of its first and last matched pose.
         global_err_m: mean error of its poses under the whole trajectory's alignment.
+        share: its poses' part of the whole trajectory's summed squared error (the ATE's
+            square times the poses): how much of the ATE the segment makes.
         local_ate_m: RMSE after its own Sim(3) alignment.
         local_scale: its own alignment's scale relative to the whole one's (1: no drift).
         path_m: ground-truth distance travelled within it.
@@ -50,6 +52,7 @@ class Segment:
     first: int
     last: int
     global_err_m: float
+    share: float
     local_ate_m: float
     local_scale: float
     path_m: float
@@ -79,6 +82,7 @@ def segment_drift(
     if length < MIN_MATCHES:
         raise ValueError(f"segments need at least {MIN_MATCHES} poses, got {length}")
     whole, E, G = _aligned(est, gt, align, max_dt)
+    squared = whole.errors_m**2
     rows = []
     for a in range(0, len(E) - length + 1, length):
         e, g = E[a : a + length, :3, 3], G[a : a + length, :3, 3]
@@ -90,6 +94,7 @@ def segment_drift(
                 first=a,
                 last=a + length - 1,
                 global_err_m=float(whole.errors_m[a : a + length].mean()),
+                share=float(squared[a : a + length].sum() / max(squared.sum(), 1e-30)),
                 local_ate_m=float(np.sqrt(np.mean(err**2))),
                 local_scale=float(local.s),
                 path_m=float(np.linalg.norm(np.diff(g, axis=0), axis=1).sum()),

@@ -50,6 +50,12 @@ def test_a_scaled_second_half_shows_as_scale_spread():
     assert scales[1] / scales[2] == pytest.approx(1.2, rel=1e-6)
     assert scale_spread(rows) == pytest.approx(0.2, rel=1e-6)
     assert whole.ate_rmse_m > 0.01
+    shares = [r.share for r in rows]  # 120 poses in 4 segments: the whole error is theirs
+    assert sum(shares) == pytest.approx(1.0, rel=1e-9)
+    n = len(whole.errors_m)
+    assert shares[0] == pytest.approx(np.sum(whole.errors_m[:30] ** 2) / n / whole.ate_rmse_m**2)
+    # one alignment of a path bent in scale fits its middle and leaves both ends off
+    assert min(shares[0], shares[3]) > 0.25 > max(shares[1], shares[2])
 
 
 def test_steps_show_where_an_estimate_moves_back_while_turning_too_far():
