@@ -170,6 +170,13 @@ def main() -> None:
         help="the least keyframes a track is used from",
     )
     p.add_argument(
+        "--gauge",
+        choices=("first", "linked"),
+        default=defaults.gauge,
+        help="the held pair of the blind start: the first two keyframes, or the consecutive "
+        "pair sharing the most points (bundle.gauge)",
+    )
+    p.add_argument(
         "--length",
         type=float,
         default=defaults.length,
@@ -258,6 +265,7 @@ def main() -> None:
         length=args.length,
         linked=args.linked,
         flow_near=args.flow_near,
+        gauge=args.gauge,
     )
     unjudged = observed(tracks, flow, indices, config)
     gt = np.stack([truth[k] for k in range(n)])

@@ -27,6 +27,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -118,6 +119,13 @@ class BundleConfig:
         "20 took room3 seed 0 from 4.30 to 7.51 cm (docs/results.md).",
     )
     iters: int = option(60, "Levenberg-Marquardt iterations (two passes of half).")
+    gauge: Literal["first", "linked"] = option(
+        "first",
+        "The two keyframes the adjustment holds (its gauge and scale): the first two, or "
+        "the consecutive pair that shares the most points (the mapper brings the adjusted "
+        "path back onto the tracked one either way). Held, the first two keep any gap "
+        "between them (7-Scenes' broken starts, docs/results.md).",
+    )
     guided: bool = option(
         False,
         "Between the adjustment's two passes, carry each track to every keyframe where its "
@@ -158,6 +166,8 @@ class BundleConfig:
             )
         if self.linked < 0 or self.every < 0 or self.flow < 0:
             raise ValueError("bundle: linked, every and flow must be at least 0")
+        if self.gauge not in ("first", "linked"):
+            raise ValueError(f"bundle.gauge must be first or linked, got {self.gauge!r}")
         if self.flow_near < -1:
             raise ValueError(
                 f"bundle.flow_near must be -1 (everywhere) or more, got {self.flow_near}"
@@ -631,17 +641,20 @@ def bundle_adjust(
     X: torch.Tensor,
     K: torch.Tensor,
     obs: Observations,
-    fixed: int,
+    fixed: int | torch.Tensor,
     iters: int,
     delta: float = 1.5,
     prior: Prior | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """Huber reprojection cost over every pose after the first `fixed` and every point.
-    `prior(T_cw)`, if given, adds whitened residuals on the poses alone. Returns the poses,
-    the points and the final cost."""
-    m = len(T_cw) - fixed
-    free = obs.k >= fixed
-    col = obs.k - fixed
+    """Huber reprojection cost over every pose but the held ones (`fixed`: the first that
+    many, or a mask of the poses) and every point. `prior(T_cw)`, if given, adds whitened
+    residuals on the poses alone. Returns the poses, the points and the final cost."""
+    held = held_mask(len(T_cw), fixed)
+    moves = ~held
+    m = int(moves.sum())
+    column = torch.cumsum(moves.long(), 0) - 1  # a moving pose's block in the system
+    free = moves[obs.k]
+    col = column[obs.k]
     ii, jj = _schur_pairs(obs, free)
     use_prior = prior is not None and m > 0
 
@@ -654,7 +667,7 @@ def bundle_adjust(
     lam = 1e-3
     for _ in range(iters):
         if use_prior:
-            r_prior, J_prior = prior.jacobian(T_cw, fixed)
+            r_prior, J_prior = prior.jacobian(T_cw, held)
         norm = r.norm(dim=1)
         w = torch.where(norm <= delta, torch.ones_like(norm), delta / norm.clamp_min(1e-12))
         x, y, z = c.unbind(1)
@@ -719,7 +732,7 @@ def bundle_adjust(
             per_obs[free] = step_c[col[free]]
             rhs = g_p.index_add(0, obs.p, -(H_cp.transpose(1, 2) @ per_obs[:, :, None])[:, :, 0])
             T_new = T_cw.clone()
-            T_new[fixed:] = pose.exp_se3(step_c) @ T_cw[fixed:]
+            T_new[moves] = pose.exp_se3(step_c) @ T_cw[moves]
             X_new = X + (H_pp_inv @ rhs[:, :, None])[:, :, 0]
             r_new, c_new, new = cost_of(T_new, X_new)
             if new < cost:
@@ -730,6 +743,13 @@ def bundle_adjust(
             if lam > 1e8:
                 return T_cw, X, cost
     return T_cw, X, cost
+
+
+def held_mask(n: int, fixed: int | torch.Tensor) -> torch.Tensor:
+    """`(n,)` bool: the poses an adjustment holds, given as the first `fixed` or a mask."""
+    if isinstance(fixed, torch.Tensor):
+        return fixed.to(torch.bool)
+    return torch.arange(n) < fixed
 
 
 def links(obs: Observations, n: int) -> torch.Tensor:
@@ -753,26 +773,31 @@ class Prior:
     def __call__(self, T_cw: torch.Tensor) -> torch.Tensor:
         return self.residuals(T_cw)
 
-    def jacobian(self, T_cw: torch.Tensor, fixed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def jacobian(
+        self, T_cw: torch.Tensor, fixed: int | torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The residuals at `T_cw` and their Jacobian with respect to left increments
-        (v, w) of the poses after the first `fixed`: poses `reach` apart share no residual,
+        (v, w) of the poses not held (`fixed`, as `bundle_adjust`'s): poses `reach` apart
+        share no residual,
         so one central difference per colour (index mod `reach`) and coordinate gives every
         pose of that colour's columns at once (float64: within 1e-6 of the exact Jacobian,
         as `tests/mapper/test_bundle.py` checks against autograd's)."""
         n = len(T_cw)
         index = torch.arange(n)
+        moves = ~held_mask(n, fixed)
+        column = torch.cumsum(moves.long(), 0) - 1
         r = self(T_cw)
-        J = torch.zeros(len(r), 6 * (n - fixed), dtype=T_cw.dtype)
+        J = torch.zeros(len(r), 6 * int(moves.sum()), dtype=T_cw.dtype)
         for colour in range(self.reach):
             owner = self.first + (colour - self.first) % self.reach  # the row's pose of it
-            valid = (owner >= fixed) & (owner < n)
+            valid = (owner < n) & moves[owner.clamp(max=n - 1)]
             for d in range(6):
                 direction = torch.zeros(n, 6, dtype=T_cw.dtype)
-                direction[(index % self.reach == colour) & (index >= fixed), d] = 1
+                direction[(index % self.reach == colour) & moves, d] = 1
                 ahead = self(pose.exp_se3(STEP * direction) @ T_cw)
                 behind = self(pose.exp_se3(-STEP * direction) @ T_cw)
                 out = (ahead - behind) / (2 * STEP)
-                J[valid, (owner[valid] - fixed) * 6 + d] = out[valid]
+                J[valid, column[owner[valid]] * 6 + d] = out[valid]
         return r, J
 
 
@@ -877,22 +902,37 @@ def adjust(
     iters: int,
     prior: Prior | None,
     more: Callable[[torch.Tensor], Observations] | None = None,
+    gauge: Literal["first", "linked"] = "first",
 ) -> Adjusted:
-    """Poses `T_wc` (float64, path order, the first two held) adjusted on `obs`: outliers
-    judged at the poses themselves, loosely first (3 `outlier`) and at `outlier` after
-    a first pass of half the iterations. `more(T_cw)`, if given, replaces `obs` for the
-    second pass with observations found at the first pass's poses (guided matching)."""
+    """Poses `T_wc` (float64, path order) adjusted on `obs`, two consecutive poses held
+    (`gauge`: the first two, or the pair sharing the most points): outliers judged at the
+    poses themselves, loosely first (3 `outlier`) and at `outlier` after a first pass of
+    half the iterations. `more(T_cw)`, if given, replaces `obs` for the second pass with
+    observations found at the first pass's poses (guided matching)."""
     T_cw = pose.invert(T_wc)
     loose = judged(T_cw, K, obs, 3 * outlier)
+    held = held_pair(loose, len(T_wc), gauge)
     X = triangulate(T_cw, K, loose)
     _, X, _ = bundle_adjust(T_cw, X, K, loose, len(T_cw), 20)
-    T_first, _, _ = bundle_adjust(T_cw, X, K, loose, 2, iters // 2, prior=prior)
+    T_first, _, _ = bundle_adjust(T_cw, X, K, loose, held, iters // 2, prior=prior)
     if more is not None:
         obs = more(T_first)
     tight = judged(T_first, K, obs, outlier)
     X = triangulate(T_first, K, tight)
-    T_ba, _, cost = bundle_adjust(T_first, X, K, tight, 2, iters - iters // 2, prior=prior)
+    T_ba, _, cost = bundle_adjust(T_first, X, K, tight, held, iters - iters // 2, prior=prior)
     return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost)
+
+
+def held_pair(obs: Observations, n: int, gauge: Literal["first", "linked"]) -> torch.Tensor:
+    """`(n,)` bool: the two consecutive poses an adjustment holds (`adjust`'s `gauge`)."""
+    first = 0
+    if gauge == "linked" and n > 2:
+        first = int(torch.argmax(links(obs, n)))
+    elif gauge not in ("first", "linked"):
+        raise ValueError(f"bundle.gauge must be first or linked, got {gauge!r}")
+    held = torch.zeros(n, dtype=torch.bool)
+    held[first : first + 2] = True
+    return held
 
 
 def observed(
@@ -943,7 +983,7 @@ def adjust_tracks(
     elsewhere (room0 seed 1: 1.25 -> 2.52 cm with no new observation; docs/results.md)."""
     obs = observed(tracks, flow, indices, cfg)
     if not cfg.guided:
-        return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior)
+        return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, gauge=cfg.gauge)
     linked = 0
 
     def guided(T_cw: torch.Tensor) -> Observations:
@@ -951,5 +991,5 @@ def adjust_tracks(
         linked = tracks.guide(indices, T_cw, cfg.views, cfg.outlier)
         return observed(tracks, flow, indices, cfg)
 
-    result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided)
+    result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided, cfg.gauge)
     return dataclasses.replace(result, guided=linked)

@@ -21,6 +21,7 @@ from dimslam.mapper.bundle import (
     bundle_adjust,
     describe,
     grey_image,
+    held_pair,
     links,
     observed,
     odometry_prior,
@@ -50,10 +51,10 @@ def _scene(cameras=8, points=300, seed=0):
     return T_wc, X, obs
 
 
-def _perturbed(T_wc, scale=0.01, seed=1):
+def _perturbed(T_wc, scale=0.01, seed=1, held=slice(0, 2)):
     noise = torch.randn(len(T_wc), 6, generator=torch.Generator().manual_seed(seed))
     noise = noise.double() * scale
-    noise[:2] = 0  # the two held poses fix the gauge and the scale
+    noise[held] = 0  # the two held poses fix the gauge and the scale
     return pose.exp_se3(noise) @ pose.invert(T_wc)
 
 
@@ -94,19 +95,45 @@ def test_odometry_prior_frees_the_step_length_and_holds_its_direction():
     assert float(prior(pose.invert(slid)).abs().max()) > 1.0
 
 
-@pytest.mark.parametrize("length", [None, 0.05])
-def test_the_priors_jacobian_by_colours_is_autograds(length):
+def test_the_adjustment_holds_any_pair_it_is_given():
+    """Poses 4 and 5 held (a mask) instead of the first two: they stay, the rest come back."""
+    T_wc, X, obs = _scene()
+    T_cw = _perturbed(T_wc, held=slice(4, 6))
+    held = torch.zeros(len(T_wc), dtype=torch.bool)
+    held[4:6] = True
+    T_ba, _, cost = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, held, 30)
+    assert torch.equal(T_ba[4:6], T_cw[4:6])
+    assert cost < 1e-8
+    assert torch.allclose(pose.invert(T_ba)[:, :3, 3], T_wc[:, :3, 3], atol=1e-6)
+
+
+def test_the_gauge_is_the_first_pair_or_the_best_linked_one():
+    _, _, obs = _scene(cameras=8, points=40)
+    extra = torch.arange(40, 60)  # 20 more points that only keyframes 5 and 6 share
+    k = torch.cat([obs.k, torch.full((20,), 5), torch.full((20,), 6)])
+    p = torch.cat([obs.p, extra, extra])
+    uv = torch.zeros(len(k), 2, dtype=torch.float64)
+    linked = Observations(k, p, uv, torch.ones(len(k)))
+    assert held_pair(linked, 8, "first").nonzero()[:, 0].tolist() == [0, 1]
+    assert held_pair(linked, 8, "linked").nonzero()[:, 0].tolist() == [5, 6]
+    with pytest.raises(ValueError, match="first or linked"):
+        held_pair(linked, 8, "middle")
+
+
+@pytest.mark.parametrize(("length", "held"), [(None, 2), (0.05, 2), (0.05, [3, 4])])
+def test_the_priors_jacobian_by_colours_is_autograds(length, held):
     T_wc, _, _ = _scene(cameras=9)
     prior = odometry_prior(T_wc, 0.2, 0.02, length, torch.tensor([0, 5, 20, 0, 0, 9, 30, 1]), 10)
     T_cw = _perturbed(T_wc, 0.05)  # away from the prior's zero, where its Jacobian is plain
+    fixed = torch.arange(9) < 2 if held == 2 else torch.isin(torch.arange(9), torch.tensor(held))
 
     def moved(step):
         T = T_cw.clone()
-        T[2:] = pose.exp_se3(step.reshape(7, 6)) @ T_cw[2:]
+        T[~fixed] = pose.exp_se3(step.reshape(7, 6)) @ T_cw[~fixed]
         return prior(T)
 
     expected = torch.autograd.functional.jacobian(moved, torch.zeros(42, dtype=torch.float64))
-    r, J = prior.jacobian(T_cw, 2)
+    r, J = prior.jacobian(T_cw, held if held == 2 else fixed)
     assert torch.allclose(r, prior(T_cw))
     assert float(expected.abs().max()) > 1.0
     assert torch.allclose(J, expected, atol=1e-6)
@@ -329,6 +356,8 @@ def test_settings_are_checked():
         BundleConfig(flow=-1)
     with pytest.raises(ValueError, match="flow_near"):
         BundleConfig(flow_near=-2)
+    with pytest.raises(ValueError, match="gauge"):
+        BundleConfig(gauge="middle")
 
 
 def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch, capsys):
