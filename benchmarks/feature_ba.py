@@ -63,6 +63,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, read_tum
 from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
+    GAUGES,
     BundleConfig,
     FeatureTracks,
     FlowTracks,
@@ -171,7 +172,7 @@ def main() -> None:
     )
     p.add_argument(
         "--gauge",
-        choices=("first", "linked"),
+        choices=GAUGES,
         default=defaults.gauge,
         help="the held pair of the blind start: the first two keyframes, or the consecutive "
         "pair sharing the most points (bundle.gauge)",

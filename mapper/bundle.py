@@ -39,6 +39,8 @@ from dimslam.common.options import option
 log = logging.getLogger(__name__)
 
 RATIO = 0.8
+GAUGES = ("first", "linked")
+"""The pairs an adjustment may hold (`BundleConfig.gauge`)."""
 """Lowe's ratio test: a match is kept when its distance is under this share of the second's."""
 SCALE = 1.2
 """ORB's pyramid scale factor: a feature's pixel error grows with its level."""
@@ -168,7 +170,7 @@ class BundleConfig:
             )
         if self.linked < 0 or self.every < 0 or self.flow < 0:
             raise ValueError("bundle: linked, every and flow must be at least 0")
-        if self.gauge not in ("first", "linked"):
+        if self.gauge not in GAUGES:
             raise ValueError(f"bundle.gauge must be first or linked, got {self.gauge!r}")
         if self.flow_near < -1:
             raise ValueError(
@@ -780,10 +782,9 @@ class Prior:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The residuals at `T_cw` and their Jacobian with respect to left increments
         (v, w) of the poses not held (`fixed`, as `bundle_adjust`'s): poses `reach` apart
-        share no residual,
-        so one central difference per colour (index mod `reach`) and coordinate gives every
-        pose of that colour's columns at once (float64: within 1e-6 of the exact Jacobian,
-        as `tests/mapper/test_bundle.py` checks against autograd's)."""
+        share no residual, so one central difference per colour (index mod `reach`) and
+        coordinate gives every pose of that colour's columns at once (float64: within 1e-6
+        of the exact Jacobian, as `tests/mapper/test_bundle.py` checks against autograd's)."""
         n = len(T_cw)
         index = torch.arange(n)
         moves = ~held_mask(n, fixed)
@@ -930,7 +931,7 @@ def held_pair(obs: Observations, n: int, gauge: Literal["first", "linked"]) -> t
     first = 0
     if gauge == "linked" and n > 2:
         first = int(torch.argmax(links(obs, n)))
-    elif gauge not in ("first", "linked"):
+    elif gauge not in GAUGES:
         raise ValueError(f"bundle.gauge must be first or linked, got {gauge!r}")
     held = torch.zeros(n, dtype=torch.bool)
     held[first : first + 2] = True
