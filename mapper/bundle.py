@@ -653,10 +653,8 @@ def bundle_adjust(
     """Huber reprojection cost over every pose but the held ones (`fixed`: the first that
     many, or a mask of the poses) and every point. `prior(T_cw)`, if given, adds whitened
     residuals on the poses alone. Returns the poses, the points and the final cost."""
-    held = held_mask(len(T_cw), fixed)
-    moves = ~held
+    moves, column = moving(len(T_cw), fixed)
     m = int(moves.sum())
-    column = torch.cumsum(moves.long(), 0) - 1  # a moving pose's block in the system
     free = moves[obs.k]
     col = column[obs.k]
     ii, jj = _schur_pairs(obs, free)
@@ -671,7 +669,7 @@ def bundle_adjust(
     lam = 1e-3
     for _ in range(iters):
         if use_prior:
-            r_prior, J_prior = prior.jacobian(T_cw, held)
+            r_prior, J_prior = prior.jacobian(T_cw, ~moves)
         norm = r.norm(dim=1)
         w = torch.where(norm <= delta, torch.ones_like(norm), delta / norm.clamp_min(1e-12))
         x, y, z = c.unbind(1)
@@ -749,11 +747,13 @@ def bundle_adjust(
     return T_cw, X, cost
 
 
-def held_mask(n: int, fixed: int | torch.Tensor) -> torch.Tensor:
-    """`(n,)` bool: the poses an adjustment holds, given as the first `fixed` or a mask."""
-    if isinstance(fixed, torch.Tensor):
-        return fixed.to(torch.bool)
-    return torch.arange(n) < fixed
+def moving(n: int, fixed: int | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which of `n` poses an adjustment moves, `(n,)` bool, when it holds `fixed` (the first
+    that many, or a mask), and each moving pose's block in its system, `(n,)` (-1 before
+    the first)."""
+    held = fixed.to(torch.bool) if isinstance(fixed, torch.Tensor) else torch.arange(n) < fixed
+    moves = ~held
+    return moves, torch.cumsum(moves.long(), 0) - 1
 
 
 def links(obs: Observations, n: int) -> torch.Tensor:
@@ -787,8 +787,7 @@ class Prior:
         of the exact Jacobian, as `tests/mapper/test_bundle.py` checks against autograd's)."""
         n = len(T_cw)
         index = torch.arange(n)
-        moves = ~held_mask(n, fixed)
-        column = torch.cumsum(moves.long(), 0) - 1
+        moves, column = moving(n, fixed)
         r = self(T_cw)
         J = torch.zeros(len(r), 6 * int(moves.sum()), dtype=T_cw.dtype)
         for colour in range(self.reach):
