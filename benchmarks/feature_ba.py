@@ -11,7 +11,8 @@ matrix by RANSAC). For the *run* and *truth* starts, matches the ground truth ca
 (reprojection above `--outlier` pixels of their level after triangulation at the true poses)
 are dropped, so what remains is what correct feature matches say about the poses; the
 adjustment then starts from the run's keyframe poses or from the true ones (brought to the
-run's frame by Sim(3)), with the first two keyframes held (they fix the gauge and the scale):
+run's frame by Sim(3)), with two consecutive keyframes held (they fix the gauge and the scale;
+`--gauge`: the first two, or the pair sharing the most points):
 
 - *points-only cost*: the points refined with every pose held, the Huber reprojection cost
   (squared pixels of the features' levels): a drifted path that costs no more than the true
@@ -71,6 +72,7 @@ from dimslam.mapper.bundle import (
     adjust_tracks,
     bundle_adjust,
     grey_image,
+    held_pair,
     links,
     observed,
     prior_for,
@@ -174,7 +176,7 @@ def main() -> None:
         "--gauge",
         choices=GAUGES,
         default=defaults.gauge,
-        help="the held pair of the blind start: the first two keyframes, or the consecutive "
+        help="the held pair of every start: the first two keyframes, or the consecutive "
         "pair sharing the most points (bundle.gauge)",
     )
     p.add_argument(
@@ -320,7 +322,8 @@ def main() -> None:
                 kept += f" ({result.guided} by guided matching)"
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
-            T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, 2, args.iters, prior=prior)
+            gauge = held_pair(obs, n, args.gauge)
+            T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, gauge, args.iters, prior=prior)
             T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
         before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
         print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
