@@ -411,15 +411,16 @@ class BackEnd:
         K = torch.from_numpy(self.camera.K)
         prior = prior_for(T_wc, obs, cfg)
         result = adjust_tracks(self.tracks, indices, T_wc, K, cfg, prior, self.flow)
-        # The adjustment holds only the first two keyframes, so the path as a whole may come
-        # out turned or scaled about them.
+        # The adjustment holds only two keyframes, so the path as a whole may come out
+        # turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
         everyone, nodes = self._with_undescribed(keyframes, T_new, scales)
         moved = self._move(everyone, nodes)
         log.info(
             "feature bundle adjustment of %d keyframes (%d more follow): %d points (of %d "
             "ORB tracks and %d flow tracks), %d observations (%d by guided matching), cost "
-            "%.1f; keyframes moved %.3f median, %.3f at most; steps scaled %.2f-%.2f (%.1f s)",
+            "%.1f; held frames %d and %d; keyframes moved %.3f median, %.3f at most; steps "
+            "scaled %.2f-%.2f (%.1f s)",
             len(keyframes),
             len(everyone) - len(keyframes),
             result.points,
@@ -428,6 +429,8 @@ class BackEnd:
             result.observations,
             result.guided,
             result.cost,
+            indices[result.held],
+            indices[result.held + 1],
             float(np.median(moved)),
             max(moved),
             float(scales.min()),

@@ -894,6 +894,8 @@ class Adjusted:
     """The final cost (px^2 of the observations' levels, Huber, plus the prior's)."""
     guided: int = 0
     """Observations that guided matching added (`adjust_tracks`)."""
+    held: int = 0
+    """The first of the two consecutive poses held (`adjust`'s `gauge`), in path order."""
 
 
 def adjust(
@@ -922,7 +924,8 @@ def adjust(
     tight = judged(T_first, K, obs, outlier)
     X = triangulate(T_first, K, tight)
     T_ba, _, cost = bundle_adjust(T_first, X, K, tight, held, iters - iters // 2, prior=prior)
-    return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost)
+    first = int(torch.nonzero(held)[0])
+    return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost, held=first)
 
 
 def held_pair(obs: Observations, n: int, gauge: Literal["first", "linked"]) -> torch.Tensor:

@@ -120,6 +120,25 @@ def test_the_gauge_is_the_first_pair_or_the_best_linked_one():
         held_pair(linked, 8, "middle")
 
 
+@pytest.mark.parametrize(("gauge", "held"), [("first", 0), ("linked", 4)])
+def test_a_broken_first_pose_comes_back_where_the_best_linked_pair_is_held(gauge, held):
+    """Pose 0 starts 5 cm off: holding it (the first pair) keeps it there; holding the pair
+    that 20 more points link brings it back, and the adjustment says which pair it held."""
+    T_wc, X, obs = _scene()
+    more = torch.rand(20, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    X = torch.cat([X, more * 2 + torch.tensor([-1.0, -1.0, 2.5])])
+    k = torch.cat([obs.k, torch.tensor([4, 5, 6]).repeat_interleave(20)])
+    p = torch.cat([obs.p, torch.arange(300, 320).repeat(3)])
+    obs = Observations(k, p, torch.zeros(len(k), 2, dtype=torch.float64), torch.ones(len(k)))
+    obs.uv, _ = reprojection(pose.invert(T_wc), X, K, obs)
+    broken = T_wc.clone()
+    broken[0, 0, 3] -= 0.05
+    result = adjust(broken, K, obs, 3.0, 30, None, gauge=gauge)
+    off = float((result.T_wc[0, :3, 3] - T_wc[0, :3, 3]).norm())
+    assert result.held == held
+    assert (off > 0.04) if gauge == "first" else (off < 1e-5)
+
+
 @pytest.mark.parametrize(("length", "held"), [(None, 2), (0.05, 2), (0.05, [3, 4])])
 def test_the_priors_jacobian_by_colours_is_autograds(length, held):
     T_wc, _, _ = _scene(cameras=9)
