@@ -126,9 +126,10 @@ class BundleConfig:
         "The two keyframes the adjustment holds (its gauge and scale): the first two, or "
         "the consecutive pair that shares the most points (the mapper brings the adjusted "
         "path back onto the tracked one either way). Held, the first two keep any gap "
-        "between them. Linked, seeds 1 / 2: 7-Scenes 11.42 / 8.13 -> 9.65 / 7.44 cm, room3 "
-        "13.48 / 4.85 -> 8.87 / 4.82, room0 4.18 / 2.15 -> 3.67 / 1.91; room5 and seed 0 "
-        "not measured (docs/results.md, 'The first 30 frames make a third of the ATE').",
+        "between them. Linked (the cpu preset's), AMD seeds 1 / 2: 7-Scenes 11.42 / 8.13 -> "
+        "9.65 / 7.44 cm, room3 13.48 / 4.85 -> 8.87 / 4.82; Intel, 3 seeds: room0 2.34 -> "
+        "2.23, room3 3.68 -> 3.66, room5 9.53 -> 9.38 (docs/results.md, 'The "
+        "adjustment's gauge over the table').",
     )
     guided: bool = option(
         False,
