@@ -113,7 +113,7 @@ PRESETS: dict[str, SlamConfig] = {
             # Held at the consecutive keyframes that share the most points rather than the
             # first two, a broken first step is not kept: no sequence's mean worse on either
             # machine (Intel, 3 seeds: room0 2.34 -> 2.23, room3 3.68 -> 3.66, room5 9.53 ->
-            # 9.38, 7-Scenes seeds 0 / 1 the same; AMD, seeds 1 / 2: 7-Scenes 11.42 / 8.13 ->
+            # 9.38, 7-Scenes the same; AMD, seeds 1 / 2: 7-Scenes 11.42 / 8.13 ->
             # 9.65 / 7.44; docs/results.md, "The adjustment's gauge over the table").
             bundle=BundleConfig(enabled=True, flow=300, flow_near=3, gauge="linked"),
             width=320,
