@@ -125,17 +125,6 @@ class MapperConfig:
         "'Frame 0 left behind').",
     )
     window_keyframes: int = option(10, "Overlapping keyframes in a mapping window.")
-    early_patch_sizes: tuple[int, ...] = option(
-        (),
-        "Patch sizes of the warping loss in the mapper's optimizations (initialization, "
-        "mapping and global rounds) whose newest frame comes before `early_until` (empty: "
-        "loss.patch_sizes throughout). Off: 1,5,11 before frame 100 with loss.patch_sizes "
-        "1,5 took room0 from 1.51 to 3.20 cm and room3 from 3.53 to 3.17 (docs/results.md, "
-        "'The 11 px patch only while the map is young').",
-    )
-    early_until: int = option(
-        0, "The mapper's optimizations before this frame index use `early_patch_sizes`."
-    )
     refine_keyframes: int = option(
         0,
         "Adam steps of the paper's tracking window objective (the `tracker` section's window "
@@ -229,8 +218,6 @@ class MapperConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.pose_gate <= 1:
             raise ValueError(f"mapper.pose_gate must be in [0, 1], got {self.pose_gate}")
-        if self.early_until > 0 and not self.early_patch_sizes:
-            raise ValueError("mapper.early_until needs mapper.early_patch_sizes")
         if self.live_iters < 0:
             raise ValueError(f"mapper.live_iters must be 0 or more, got {self.live_iters}")
         if self.idle_chunks < 0:
@@ -290,8 +277,7 @@ class Mapper:
         self.generator = generator
         self.map_cfg = map_cfg
         self.field = make_field(map_cfg, device=device)
-        # Pixels are drawn where the widest patch of any round fits.
-        self.margin = loss_cfg.margin(cfg.early_patch_sizes)
+        self.margin = loss_cfg.margin()
         self._map_optimizer: torch.optim.Optimizer | None = None
         self.sweeps: dict[int, SweepDepth] = {}  # keyframe index -> its multi-view depth
         # keyframe index -> (its and its sources' poses, its plane sweep at them) for the mesh
@@ -440,7 +426,7 @@ class Mapper:
                 self._sampler(len(window)),
                 iterations,
                 self.cfg.pose_lr,
-                self._round_loss(window),
+                self.loss_cfg,
                 self.render_cfg,
                 map_optimizer=self._adam(self._init_groups(self.cfg.init_lr_scale)),
                 generator=self.generator,
@@ -522,7 +508,7 @@ class Mapper:
                 self.camera,
                 frame,
                 uv,
-                self._round_loss(frames),
+                self.loss_cfg,
                 self.render_cfg,
                 g,
             )
@@ -557,7 +543,7 @@ class Mapper:
             self._sampler(len(window)),
             self.cfg.iters if iters is None else iters,
             self.cfg.pose_lr,
-            self._round_loss(window),
+            self.loss_cfg,
             self.render_cfg,
             map_optimizer=self._round_optimizer(),
             generator=self.generator,
@@ -572,12 +558,6 @@ class Mapper:
     def _free(self, f: FrameState) -> bool:
         """Whether an optimization may move the frame's pose: not frame 0's (`hold_first`)."""
         return f.index != 0 or not self.cfg.hold_first
-
-    def _round_loss(self, frames: list[FrameState]) -> LossConfig:
-        """The objective of an optimization of the map seen by `frames` (`early_until`)."""
-        if max(f.index for f in frames) < self.cfg.early_until:
-            return replace(self.loss_cfg, patch_sizes=self.cfg.early_patch_sizes)
-        return self.loss_cfg
 
     def _sweep_new(self, recent: list[FrameState], keyframes: list[FrameState]) -> None:
         """Plane sweeps of the recent keyframes that have none yet (`stereo_weight`)."""
@@ -691,7 +671,7 @@ class Mapper:
                 self._sampler(len(window)),
                 min(chunk, remaining),
                 self.cfg.pose_lr if poses else 0.0,
-                self._round_loss(keyframes),
+                self.loss_cfg,
                 self.render_cfg,
                 map_optimizer=self._adam(self._groups(0.0)),
                 generator=self.generator,

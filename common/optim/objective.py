@@ -32,11 +32,6 @@ class LossConfig:
     warp_weight: float = option(0.5, "Weight of the patch warping loss (paper: 0.5).")
     render_weight: float = option(0.1, "Weight of the L1 render loss (paper: 0.1).")
     smooth_weight: float = option(0.01, "Weight of the depth smoothness loss (paper: 0.01).")
-    opacity_weight: float = option(
-        0.0,
-        "Weight of the mean squared (1 - opacity) of the rendered rays: every ray of a room "
-        "stops at a surface (0: off, the paper's).",
-    )
     patch_sizes: tuple[int, ...] = option((1, 5, 11), "Patch sizes of the warping loss.")
     min_views: int = option(5, "A pixel counts if it lands inside more than this many frames.")
     smooth_blocks: int = option(128, "Rendered 2x2 pixel blocks per iteration for smoothness.")
@@ -46,10 +41,9 @@ class LossConfig:
         size)."""
         return losses.patch_offsets(max(self.patch_sizes), dtype=dtype, device=device)
 
-    def margin(self, sizes: tuple[int, ...] = ()) -> int:
-        """Pixels from the border where the largest patch (of `patch_sizes` and `sizes`)
-        still fits whole."""
-        return max((*self.patch_sizes, *sizes)) // 2
+    def margin(self) -> int:
+        """Pixels from the border where the largest patch still fits whole."""
+        return max(self.patch_sizes) // 2
 
 
 @dataclass(frozen=True)
@@ -165,8 +159,6 @@ def window_objective(
     warp_value, count = term.value, term.count
 
     loss = cfg.warp_weight * warp_value + cfg.render_weight * render_term.value
-    if cfg.opacity_weight > 0:
-        loss = loss + cfg.opacity_weight * (1 - out.opacity).square().mean()
     smooth_value = 0.0
     if smooth and cfg.smooth_weight > 0 and cfg.smooth_blocks > 0:
         term = _smoothness(

@@ -1,10 +1,7 @@
 """Mapper choices that need no trained map: which poses a mapping round moves."""
 
-from dataclasses import replace
-
-import pytest
 import torch
-from walls import CAM, SMALL_LOSS, SMALL_MAP, small_mapper, textured_wall_image
+from walls import CAM, SMALL_MAP, small_mapper, textured_wall_image
 
 from dimslam.common.geometry import pose
 from dimslam.common.map.render import RenderConfig, render_pixels
@@ -55,46 +52,6 @@ def test_kept_adam_state_carries_over_between_rounds():
             assert steps == [6.0, 6.0]
         else:
             assert steps == []
-
-
-def test_early_rounds_warp_the_early_patches_and_later_ones_the_loss_patches():
-    """An optimization whose newest frame comes before `early_until` (a mapping round, a
-    global round) is that of a mapper whose loss has the early patch sizes; from
-    `early_until` on it is not. Pixels are drawn where the widest patch fits either way."""
-    poses = [pose.make_pose(torch.eye(3), torch.tensor([0.05 * i, 0.0, 0.0])) for i in range(4)]
-
-    def moved(m: Mapper, global_round: bool) -> torch.Tensor:
-        frames = [
-            FrameState(i + 1, i / 30, textured_wall_image(T), T.clone(), keyframe=True)
-            for i, T in enumerate(poses)
-        ]
-        if global_round:
-            m.post_optimize(frames, iters=3, chunk=3, anchors=[frames[3]], poses=True)
-        else:
-            m.map(frames[2:], frames[:2])
-        return torch.stack([f.T_wc for f in frames])
-
-    def built(cfg: MapperConfig, loss=SMALL_LOSS) -> Mapper:
-        torch.manual_seed(0)  # the grids' initialization: the same map every time
-        return small_mapper(cfg, loss_cfg=loss)
-
-    kw = dict(pixels=64, iters=3, window_keyframes=2, early_patch_sizes=(1, 5, 11))
-    for global_round in (False, True):
-        wide = built(
-            MapperConfig(pixels=64, iters=3, window_keyframes=2),
-            replace(SMALL_LOSS, patch_sizes=(1, 5, 11)),
-        )
-        early = built(MapperConfig(**kw, early_until=5))  # the newest frame is 4
-        late = built(MapperConfig(**kw, early_until=4))
-        assert wide.margin == early.margin == late.margin == 5
-        expected = moved(wide, global_round)
-        assert torch.equal(moved(early, global_round), expected)
-        assert not torch.allclose(moved(late, global_round), expected)
-
-
-def test_early_until_needs_early_patch_sizes():
-    with pytest.raises(ValueError, match="early_patch_sizes"):
-        MapperConfig(early_until=100)
 
 
 def test_global_refinement_moves_keyframes_anywhere_on_the_path_but_frame_0():
