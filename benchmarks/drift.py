@@ -1,6 +1,7 @@
 """Where along the path an estimate's error comes from: local accuracy and local scale.
 
-    python benchmarks/drift.py TRAJ DATASET [--segment 30] [--frames N] [--steps A-B] [--json FILE]
+    python benchmarks/drift.py TRAJ DATASET [--segment 30] [--frames N] [--steps A-B]
+        [--keyframes KEYFRAMES] [--json FILE]
 
 TRAJ is a TUM trajectory (a run's `trajectory.txt`), DATASET anything the readers know with
 ground truth. The whole trajectory is aligned once (Sim(3), as `dimslam eval` does); then the
@@ -20,7 +21,10 @@ stretch. `--steps A-B` then prints, for matched poses A to B, each frame-to-fram
 the estimate (under the global alignment) against the ground truth's: its length, the cosine
 between the two directions (-1: the estimate moved back) and the rotation turned. A tracker
 that trades translation for rotation shows there as a step pointing the wrong way while it
-turns too far.
+turns too far. `--keyframes` (a run's `keyframes.txt`) compares the steps' length errors
+(|est / gt - 1| under the global alignment) on the steps that end on a keyframe with the
+others': a trajectory whose frames between keyframes did not follow the keyframes'
+corrections jumps at each keyframe.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+import numpy as np
 
 from dimslam.common.eval.drift import SEGMENT, frame_steps, scale_spread, segment_drift
 from dimslam.common.io.datasets import open_dataset
@@ -41,6 +47,11 @@ def main() -> None:
     p.add_argument("--segment", type=int, default=SEGMENT, help="matched poses per segment")
     p.add_argument("--frames", type=int, help="use only the estimate's first N poses")
     p.add_argument("--steps", help="A-B: print the frame-to-frame steps of matched poses A..B")
+    p.add_argument(
+        "--keyframes",
+        type=Path,
+        help="the run's keyframes.txt: length errors of the steps onto keyframes and the rest",
+    )
     p.add_argument("--json", type=Path, help="also write the figures here")
     args = p.parse_args()
     steps = None
@@ -84,8 +95,29 @@ def main() -> None:
                 f"{100 * m.gt_m:5.2f} cm | {m.cos:+.2f} | {m.est_deg:4.2f} / {m.gt_deg:4.2f} deg"
             )
         figures["steps"] = [m.to_dict() for m in moves]
+    if args.keyframes is not None:
+        figures["keyframe_steps"] = keyframe_steps(est, gt, read_tum(args.keyframes))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
+
+
+def keyframe_steps(est: Trajectory, gt: Trajectory, keyframes: Trajectory) -> dict:
+    """Print and return the steps' length errors |est / gt - 1|, median and 90th percentile,
+    on the steps that end on a keyframe and on the others."""
+    at_keyframe = set(np.round(keyframes.timestamps, 6))
+    stamps = np.round(est.timestamps, 6)
+    groups: dict[str, list[float]] = {"onto keyframes": [], "between": []}
+    for m in frame_steps(est, gt, 1, len(est) - 1):
+        if m.gt_m > 0 and m.index < len(stamps):
+            name = "onto keyframes" if stamps[m.index] in at_keyframe else "between"
+            groups[name].append(abs(m.est_m / m.gt_m - 1))
+    figures = {}
+    for name, errors in groups.items():
+        if errors:
+            median, p90 = np.percentile(errors, [50, 90])
+            print(f"step length error {name}: {median:.3f} median, {p90:.3f} p90 ({len(errors)})")
+            figures[name] = {"median": float(median), "p90": float(p90), "steps": len(errors)}
+    return figures
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ import re
 
 import numpy as np
 import pytest
+from repo import benchmark
 
 from dimslam.common.eval.drift import (
     frame_steps,
@@ -127,3 +128,24 @@ def test_a_runs_metrics_carry_the_spread(tmp_path, capsys, frames):
         assert spread is None and printed == []
     else:
         assert spread == pytest.approx(0.2, rel=1e-3) and printed == ["20.0"]
+
+
+def test_the_benchmark_tells_steps_that_jump_onto_keyframes(monkeypatch, capsys):
+    """A path whose every third step (onto a keyframe) is 50 % too long shows it on the steps
+    onto keyframes and not on the others."""
+    drift = benchmark(monkeypatch, "drift")
+    gt = helix(90)
+    steps = np.diff(gt.poses[:, :3, 3], axis=0)
+    steps[2::3] *= 1.5  # the steps onto poses 3, 6, 9, ...
+    poses = gt.poses.copy()
+    poses[1:, :3, 3] = gt.poses[0, :3, 3] + np.cumsum(steps, axis=0)
+    est = Trajectory(gt.timestamps, poses)
+    keyframes = Trajectory(gt.timestamps[::3], poses[::3])
+    figures = drift.keyframe_steps(est, gt, keyframes)
+    onto, between = figures["onto keyframes"], figures["between"]
+    assert (onto["steps"], between["steps"]) == (29, 60)
+    # under the one alignment's scale the long steps come out long and the others short,
+    # 1.5 times as long as each other
+    assert (1 + onto["median"]) / (1 - between["median"]) == pytest.approx(1.5, rel=1e-6)
+    assert onto["p90"] == pytest.approx(onto["median"], rel=1e-6)
+    assert "step length error onto keyframes" in capsys.readouterr().out
