@@ -149,3 +149,9 @@ def test_the_benchmark_tells_steps_that_jump_onto_keyframes(monkeypatch, capsys)
     assert (1 + onto["median"]) / (1 - between["median"]) == pytest.approx(1.5, rel=1e-6)
     assert onto["p90"] == pytest.approx(onto["median"], rel=1e-6)
     assert "step length error onto keyframes" in capsys.readouterr().out
+    # Poses the ground truth lacks are no steps' ends: the steps are those of matched poses.
+    partial = Trajectory(gt.timestamps[1:], gt.poses[1:])
+    figures = drift.keyframe_steps(est, partial, keyframes)
+    assert (figures["onto keyframes"]["steps"], figures["between"]["steps"]) == (29, 59)
+    onto, between = figures["onto keyframes"], figures["between"]
+    assert (1 + onto["median"]) / (1 - between["median"]) == pytest.approx(1.5, rel=1e-6)
