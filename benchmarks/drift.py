@@ -36,7 +36,6 @@ from pathlib import Path
 import numpy as np
 
 from dimslam.common.eval.drift import SEGMENT, frame_steps, scale_spread, segment_drift
-from dimslam.common.eval.evaluation import associate
 from dimslam.common.io.datasets import open_dataset
 from dimslam.common.io.trajectory import Trajectory, read_tum
 
@@ -105,13 +104,11 @@ def main() -> None:
 def keyframe_steps(est: Trajectory, gt: Trajectory, keyframes: Trajectory) -> dict:
     """Print and return the steps' length errors |est / gt - 1|, median and 90th percentile,
     on the steps that end on a keyframe and on the others."""
-    at_keyframe = set(np.round(keyframes.timestamps, 6))
-    matched, _ = associate(est.timestamps, gt.timestamps)  # the steps' poses, as frame_steps'
-    stamps = np.round(est.timestamps[matched], 6)
+    at_keyframe = {round(float(t), 6) for t in keyframes.timestamps}
     groups: dict[str, list[float]] = {"onto keyframes": [], "between": []}
-    for m in frame_steps(est, gt, 1, len(stamps) - 1):
+    for m in frame_steps(est, gt, 1, len(est) - 1):
         if m.gt_m > 0:
-            name = "onto keyframes" if stamps[m.index] in at_keyframe else "between"
+            name = "onto keyframes" if round(m.timestamp, 6) in at_keyframe else "between"
             groups[name].append(abs(m.est_m / m.gt_m - 1))
     figures = {}
     for name, errors in groups.items():

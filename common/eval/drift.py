@@ -81,7 +81,7 @@ def segment_drift(
     """
     if length < MIN_MATCHES:
         raise ValueError(f"segments need at least {MIN_MATCHES} poses, got {length}")
-    whole, E, G = _aligned(est, gt, align, max_dt)
+    whole, E, G, _ = _aligned(est, gt, align, max_dt)
     squared = whole.errors_m**2
     rows = []
     for a in range(0, len(E) - length + 1, length):
@@ -106,12 +106,13 @@ def segment_drift(
 
 def _aligned(
     est: Trajectory, gt: Trajectory, align: Literal["sim3", "se3"], max_dt: float
-) -> tuple[TrajectoryMetrics, np.ndarray, np.ndarray]:
+) -> tuple[TrajectoryMetrics, np.ndarray, np.ndarray, np.ndarray]:
     """The whole trajectory's metrics, and the matched poses: the estimate's under its
-    alignment, the ground truth's."""
+    alignment, the ground truth's, and the estimate's timestamps of them."""
     whole = evaluate_trajectory(est, gt, align=align, max_dt=max_dt)
     idx_est, idx_gt = associate(est.timestamps, gt.timestamps, max_dt)  # as evaluate_trajectory
-    return whole, whole.alignment.apply_poses(est.poses[idx_est]), gt.poses[idx_gt]
+    E = whole.alignment.apply_poses(est.poses[idx_est])
+    return whole, E, gt.poses[idx_gt], est.timestamps[idx_est]
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,7 @@ class Step:
 
     Attributes:
         index: the matched pose the step ends at.
+        timestamp: that pose's timestamp in the estimate.
         err_m: that pose's error under the whole trajectory's alignment.
         est_m, gt_m: distance moved (estimate after the alignment, ground truth).
         cos: cosine between the two moves' directions (-1: the estimate went back).
@@ -127,6 +129,7 @@ class Step:
     """
 
     index: int
+    timestamp: float
     err_m: float
     est_m: float
     gt_m: float
@@ -143,7 +146,7 @@ def frame_steps(
 ) -> list[Step]:
     """Frame-to-frame motion of matched poses `first`..`last` (both included) under the whole
     trajectory's Sim(3): where a tracker turned too far or moved the wrong way."""
-    whole, E, G = _aligned(est, gt, "sim3", max_dt)
+    whole, E, G, stamps = _aligned(est, gt, "sim3", max_dt)
     rows = []
     for i in range(max(first, 1), min(last, len(E) - 1) + 1):
         de, dg = E[i, :3, 3] - E[i - 1, :3, 3], G[i, :3, 3] - G[i - 1, :3, 3]
@@ -155,6 +158,7 @@ def frame_steps(
         rows.append(
             Step(
                 index=i,
+                timestamp=float(stamps[i]),
                 err_m=float(whole.errors_m[i]),
                 est_m=float(np.linalg.norm(de)),
                 gt_m=float(np.linalg.norm(dg)),
