@@ -61,10 +61,12 @@ import torch
 from dimslam.common.eval.evaluation import evaluate_trajectory, umeyama
 from dimslam.common.geometry import pose
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
-from dimslam.common.io.trajectory import Trajectory, read_tum
+from dimslam.common.io.trajectory import Trajectory, read_tum, write_tum
 from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
     GAUGES,
+    SLIDE_GAP,
+    SLIDE_INLIERS,
     BundleConfig,
     FeatureTracks,
     FlowTracks,
@@ -77,6 +79,7 @@ from dimslam.mapper.bundle import (
     observed,
     prior_for,
     reprojection,
+    slide_checked,
     triangulate,
 )
 
@@ -231,6 +234,17 @@ def main() -> None:
         help="the points-only cost at the true poses with the focal length, distortion and a "
         "constant turn fitted (is the truth the images' camera motion?)",
     )
+    p.add_argument(
+        "--save-trajectory",
+        type=Path,
+        help="blind start: write every frame as the mapper carries it here (TUM)",
+    )
+    p.add_argument(
+        "--slides",
+        action="store_true",
+        help="blind start: stretches where the features contradict the tracked motion "
+        "adjusted from the motion before them, no prior on their steps (`bundle.slides`)",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -308,23 +322,41 @@ def main() -> None:
         f"points two consecutive keyframes share: median {int(shared.median())}, "
         f"{int((shared < args.linked).sum())} of {n - 1} steps under --linked {args.linked}"
     )
-    prior = prior_for(run, unjudged, config) if args.odometry is not None else None
+    blind_start, free = run, None
+    if args.slides:
+        check = slide_checked(run, K, tracks, flow, indices, config)
+        blind_start, free = check.start, check.free
+        against = (check.inliers >= SLIDE_INLIERS) & (np.nan_to_num(check.cosine, nan=1) < 0)
+        print(
+            f"essential matrices against the tracked motion from {SLIDE_GAP} keyframes before "
+            f"({SLIDE_INLIERS}+ inliers; keyframe: cosine / inliers): "
+            + " ".join(
+                f"{k}: {check.cosine[k]:+.2f} / {check.inliers[k]}" for k in np.flatnonzero(against)
+            )
+        )
+        print(
+            "slides the features see (keyframes): "
+            + (", ".join(f"{a}-{b}" for a, b in check.stretches) or "none")
+        )
+    prior = prior_for(blind_start, unjudged, config, free) if args.odometry is not None else None
     print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
     blind = None
     for name in args.starts.split(","):
         T_wc = starts["run" if name == "blind" else name]
         T_cw = pose.invert(T_wc)
         if name == "blind":
-            result = adjust_tracks(tracks, indices, T_wc, K, config, prior, flow)
+            result = adjust_tracks(tracks, indices, blind_start, K, config, prior, flow, free)
             T_ba, cost, held = result.T_wc, result.cost, "-"
             blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
             if args.guided:
                 kept += f" ({result.guided} by guided matching)"
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
-            gauge = held_pair(obs, n, args.gauge)
+            gauge = held_pair(obs, n, args.gauge, free)
             T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, gauge, args.iters, prior=prior)
             T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
+        if name == "blind":
+            T_wc = blind_start
         before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
         print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
     if args.fit_camera:
@@ -344,6 +376,8 @@ def main() -> None:
         stamps, truth_all = frames.timestamps, Trajectory(frames.timestamps, np.stack(gt_all))
         before = evaluate_trajectory(frames, truth_all).ate_rmse_m * 100
         after = evaluate_trajectory(Trajectory(stamps, moved), truth_all).ate_rmse_m * 100
+        if args.save_trajectory is not None:
+            write_tum(args.save_trajectory, Trajectory(stamps, moved))
         print(
             f"every frame (trajectory.txt, as the mapper carries them): {before:.2f} -> {after:.2f}"
         )

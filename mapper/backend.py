@@ -47,6 +47,7 @@ from dimslam.mapper.bundle import (
     adjust_tracks,
     grey_image,
     prior_for,
+    slide_checked,
     with_flow,
 )
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
@@ -409,8 +410,19 @@ class BackEnd:
         obs = with_flow(described, self.flow, indices, cfg)
         T_wc = torch.stack([kf.T_wc.detach().cpu().double() for kf in keyframes])
         K = torch.from_numpy(self.camera.K)
-        prior = prior_for(T_wc, obs, cfg)
-        result = adjust_tracks(self.tracks, indices, T_wc, K, cfg, prior, self.flow)
+        start, free = T_wc, None
+        if cfg.slides:
+            check = slide_checked(T_wc, K, self.tracks, self.flow, indices, cfg)
+            start, free = check.start, check.free
+            for first, last in check.stretches:
+                log.info(
+                    "the features contradict the tracked motion at keyframes of frames %d-%d: "
+                    "adjusted from the motion before them",
+                    indices[first],
+                    indices[last],
+                )
+        prior = prior_for(start, obs, cfg, free)
+        result = adjust_tracks(self.tracks, indices, start, K, cfg, prior, self.flow, free)
         # The adjustment holds only two keyframes, so the path as a whole may come out
         # turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)

@@ -52,6 +52,21 @@ feature may lie to be its observation."""
 GUIDE_HAMMING = 50
 """Guided matching: the most bits a feature's descriptor may differ from the nearest of the
 track's (ORB-SLAM's strict threshold)."""
+SLIDE_GAP = 3
+"""The slide check (`slides`) compares the tracked motion from keyframe k - 3 to k with the
+essential matrix of their shared observations: consecutive keyframes are too near for its
+direction."""
+SLIDE_INLIERS = 100
+"""An essential matrix points against the tracked motion only from this many inliers (with
+fewer its direction is noise)."""
+SLIDE_CONFIRMED = 0.5
+"""A slide reaches over the keyframes next to it whose matrix does not clearly confirm the
+tracked direction (cosine under this)."""
+SLIDE_WINDOW, SLIDE_LEAST = 7, 5
+"""A slide: at least 5 of 7 consecutive keyframes whose matrix points against the tracked
+motion. Single ones do on every sequence (session 57's runs: room0 seed 1 three keyframes
+of 6-10, room3 and 7-Scenes one to four apart, with 107-295 inliers), where the matrix is
+wrong; 5 of 7 only in room5's last turn on seeds 0 and 1 (docs/results.md, session 59)."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +174,14 @@ class BundleConfig:
         "keyframe it started at (the frame-to-frame flow's drift does not add up: on "
         "7-Scenes its tracks reproject 1.5 px from the true poses at the median instead of "
         "2.8). 7-Scenes 5.54 -> 4.32 cm, the rooms worse (docs/results.md, session 38).",
+    )
+    slides: bool = option(
+        False,
+        "Before adjusting, look for stretches where the features' epipolar geometry "
+        "contradicts the tracked direction of motion over many keyframes (`slides`: the "
+        "tracker slid into a wrong turn the images hardly tell from a sideways move, room5's "
+        "last turn), and adjust them from the motion before them with no prior on their "
+        "steps (`slid_start`).",
     )
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
@@ -811,6 +834,7 @@ def odometry_prior(
     length: float | None = None,
     linked: torch.Tensor | None = None,
     full: int = 1,
+    free: torch.Tensor | None = None,
 ) -> Prior:
     """Whitened residuals (of world-to-camera poses) that keep each step between
     consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
@@ -822,7 +846,10 @@ def odometry_prior(
     ratio within `length`; lengths softened by a quarter of the median so that turns in
     place count little), as far as features do not link its poses: in full where its two
     poses share no point (`linked`, from `links`), not at all from `full` shared points
-    on. Steps that no feature sees then keep their neighbours' scale instead of any."""
+    on. Steps that no feature sees then keep their neighbours' scale instead of any.
+
+    Steps `free` (`(n - 1,)` bool, from `slid_start`) are not held at all: the tracked
+    motion there is what the adjustment is to undo."""
     rel = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
     size = rel[:, :3, 3].norm(dim=1, keepdim=True)
     median = size.median().clamp_min(1e-12)
@@ -841,13 +868,19 @@ def odometry_prior(
     # A ratio joins two steps: held as much as the worse linked of them, so that a stretch
     # no feature sees takes its scale from the steps on either side.
     ratio_weight = torch.maximum(held[1:], held[:-1]) / (length or 1.0)
+    step_weight = torch.ones(len(size), dtype=T_wc.dtype)
+    if free is not None:
+        step_weight = (~free).to(T_wc.dtype)
+        ratio_weight = ratio_weight * step_weight[1:] * step_weight[:-1]
+    weight = weight * step_weight[:, None]
 
     def residuals(T_cw: torch.Tensor) -> torch.Tensor:
         step = pose.compose(T_cw[:-1], pose.invert(T_cw[1:]))
         turn = pose.log_so3(rel[:, :3, :3].transpose(1, 2) @ step[:, :3, :3])
         moved = step[:, :3, 3].norm(dim=1, keepdim=True)
         t = step[:, :3, 3] / moved.clamp_min(1e-12)
-        parts = [(turn / math.radians(turn_deg)).ravel(), ((t - heading) * weight).ravel()]
+        turn = turn / math.radians(turn_deg) * step_weight[:, None]
+        parts = [turn.ravel(), ((t - heading) * weight).ravel()]
         if length is not None:
             parts.append((log_ratios(moved.ravel()) - ratios) * ratio_weight)
         return torch.cat(parts)
@@ -859,12 +892,151 @@ def odometry_prior(
     return Prior(residuals, first, 3 if length is not None else 2)
 
 
-def prior_for(T_wc: torch.Tensor, obs: Observations, cfg: BundleConfig) -> Prior:
-    """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`."""
+def prior_for(
+    T_wc: torch.Tensor, obs: Observations, cfg: BundleConfig, free: torch.Tensor | None = None
+) -> Prior:
+    """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`, none
+    on the steps `free`."""
     if cfg.linked == 0:
-        return odometry_prior(T_wc, cfg.turn_deg, cfg.direction)
+        return odometry_prior(T_wc, cfg.turn_deg, cfg.direction, free=free)
     shared = links(obs, len(T_wc))
-    return odometry_prior(T_wc, cfg.turn_deg, cfg.direction, cfg.length, shared, cfg.linked)
+    return odometry_prior(
+        T_wc, cfg.turn_deg, cfg.direction, cfg.length, shared, cfg.linked, free=free
+    )
+
+
+def feature_directions(
+    T_wc: torch.Tensor, K: torch.Tensor, obs: Observations, gap: int = SLIDE_GAP
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each keyframe `k` (poses `T_wc`, path order) from `gap` on: the cosine between
+    its tracked direction of motion from keyframe `k - gap` and the direction the essential
+    matrix of their shared observations gives (RANSAC, 1 px), and that matrix's inliers;
+    `(n,)` each, nan and 0 where there is none (under 30 shared points, or before `gap`)."""
+    n = len(T_wc)
+    cosine, inliers = np.full(n, np.nan), np.zeros(n, np.int64)
+    k_of, p_of, uv = obs.k.numpy(), obs.p.numpy(), obs.uv.numpy()
+    Kn = K.numpy()
+    for k in range(gap, n):
+        a = k - gap
+        _, at_a, at_k = np.intersect1d(
+            p_of[k_of == a], p_of[k_of == k], assume_unique=True, return_indices=True
+        )
+        if len(at_a) < 30:
+            continue
+        x_a, x_k = uv[k_of == a][at_a], uv[k_of == k][at_k]
+        E, mask = cv2.findEssentialMat(x_a, x_k, Kn, cv2.RANSAC, 0.999, 1.0)
+        if E is None or E.shape != (3, 3):
+            continue
+        inliers[k], R, t, _ = cv2.recoverPose(E, x_a, x_k, Kn, mask=mask)
+        seen = -R.T @ t.ravel()  # keyframe k's centre in keyframe a's camera
+        moved = (pose.invert(T_wc[a]) @ T_wc[k])[:3, 3].numpy()
+        norms = np.linalg.norm(seen) * np.linalg.norm(moved)
+        if norms > 0:
+            cosine[k] = float(seen @ moved) / norms
+    return cosine, inliers
+
+
+def slides(cosine: np.ndarray, inliers: np.ndarray) -> list[tuple[int, int]]:
+    """The stretches `(first, last)` of keyframes where the features contradict the tracked
+    motion (`feature_directions`): at least `SLIDE_LEAST` of `SLIDE_WINDOW` consecutive
+    keyframes whose essential matrix of `SLIDE_INLIERS` inliers or more points against it
+    (negative cosine), reaching over the keyframes next to them whose matrix does not
+    clearly confirm the tracked motion (`SLIDE_CONFIRMED`; room5 seed 0: keyframes 84-92
+    about the five of 93-98), and to the path's end where fewer than `SLIDE_WINDOW`
+    keyframes are left after it (too few to show that the slide ended)."""
+    against = (inliers >= SLIDE_INLIERS) & (np.nan_to_num(cosine, nan=1.0) < 0)
+    marked = np.zeros(len(against), bool)
+    for start in range(max(len(against) - SLIDE_WINDOW + 1, 0)):
+        window = against[start : start + SLIDE_WINDOW]
+        if window.sum() >= SLIDE_LEAST:
+            first, last = np.flatnonzero(window)[[0, -1]]
+            marked[start + first : start + last + 1] = True
+    # A slide reaches as far as the features do not clearly confirm the tracked motion,
+    # and to the path's end where too few keyframes are left to show that it ended.
+    doubtful = np.nan_to_num(cosine, nan=0.0) < SLIDE_CONFIRMED
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], marked.astype(np.int8), [0]])))
+    stretches = []
+    for first, end in zip(edges[::2], edges[1::2], strict=True):
+        last = end - 1
+        while first > 0 and doubtful[first - 1]:
+            first -= 1
+        while last + 1 < len(cosine) and doubtful[last + 1]:
+            last += 1
+        if len(cosine) - 1 - last < SLIDE_WINDOW:
+            last = len(cosine) - 1
+        if stretches and first <= stretches[-1][1] + 1:
+            first, before = stretches.pop()
+            last = max(last, before)
+        stretches.append((int(first), int(last)))
+    return stretches
+
+
+def slid_start(
+    T_wc: torch.Tensor, frames: list[int], stretches: list[tuple[int, int]], gap: int = SLIDE_GAP
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """An adjustment's start with each slid stretch `(first, last)` (`slides`) followed
+    from the motion before it, and the steps the prior is to leave free.
+
+    The features say a stretch has slid from keyframe `first - gap` on (their matrices
+    compare keyframes `gap` apart), so from there on its keyframes continue the motion of
+    the two steps before, per frame (`frames`: each keyframe's frame index), and the
+    keyframes after it follow its last rigidly. The slid motion lies in another minimum of
+    the reprojection cost than the true one, which the adjustment does not cross from the
+    tracked poses even with no prior on the slid steps; from the motion before the slide
+    it reaches the true one (docs/results.md, session 59). Returns the start
+    `(n, 4, 4)` and `(n - 1,)` bool, the steps about the slid stretches (a stretch whose
+    motion before is unknown, too near the path's start, is left as it is)."""
+    start = T_wc.clone()
+    free = torch.zeros(len(T_wc) - 1, dtype=torch.bool)
+    for first, last in stretches:
+        trusted = first - gap
+        if trusted < 2:
+            continue
+        before = trusted - 2
+        twist = pose.log_se3(pose.invert(start[before]) @ start[trusted])
+        twist = twist / (frames[trusted] - frames[before])
+        for k in range(trusted + 1, last + 1):
+            start[k] = start[trusted] @ pose.exp_se3(twist * (frames[k] - frames[trusted]))
+        follow = start[last] @ pose.invert(T_wc[last])
+        start[last + 1 :] = follow @ T_wc[last + 1 :]
+        free[trusted:last] = True
+    return start, free
+
+
+@dataclass(frozen=True)
+class SlideCheck:
+    """What `slide_checked` found."""
+
+    start: torch.Tensor
+    """`(n, 4, 4)` the adjustment's start: the tracked poses, slid stretches followed from
+    the motion before them (`slid_start`)."""
+    free: torch.Tensor | None
+    """`(n - 1,)` bool, the steps the prior leaves free; None where no stretch is."""
+    stretches: list[tuple[int, int]]
+    cosine: np.ndarray
+    inliers: np.ndarray
+    """`feature_directions`' figures."""
+
+
+def slide_checked(
+    T_wc: torch.Tensor,
+    K: torch.Tensor,
+    tracks: FeatureTracks,
+    flow: FlowTracks | None,
+    frames: list[int],
+    cfg: BundleConfig,
+) -> SlideCheck:
+    """Keyframes `frames` (poses `T_wc`) checked for slides (`slides`) and the
+    adjustment's start and free steps about them. The check reads the flow's tracks at
+    every keyframe, whatever `cfg.flow_near`: where ORB finds few corners (room5's last
+    turn) the flow's corners are most of what sees the motion."""
+    obs = observed(tracks, flow, frames, dataclasses.replace(cfg, flow_near=-1))
+    cosine, inliers = feature_directions(T_wc, K, obs)
+    stretches = slides(cosine, inliers)
+    if not stretches:
+        return SlideCheck(T_wc, None, [], cosine, inliers)
+    start, free = slid_start(T_wc, frames, stretches)
+    return SlideCheck(start, free, stretches, cosine, inliers)
 
 
 def inliers(T_cw: torch.Tensor, K: torch.Tensor, obs: Observations, limit: float) -> torch.Tensor:
@@ -908,15 +1080,17 @@ def adjust(
     prior: Prior | None,
     more: Callable[[torch.Tensor], Observations] | None = None,
     gauge: Literal["first", "linked"] = "first",
+    free: torch.Tensor | None = None,
 ) -> Adjusted:
     """Poses `T_wc` (float64, path order) adjusted on `obs`, two consecutive poses held
-    (`gauge`: the first two, or the pair sharing the most points): outliers judged at the
+    (`gauge`: the first two, or the pair sharing the most points, not across a step `free`
+    of the prior: a guess): outliers judged at the
     poses themselves, loosely first (3 `outlier`) and at `outlier` after a first pass of
     half the iterations. `more(T_cw)`, if given, replaces `obs` for the second pass with
     observations found at the first pass's poses (guided matching)."""
     T_cw = pose.invert(T_wc)
     loose = judged(T_cw, K, obs, 3 * outlier)
-    held = held_pair(loose, len(T_wc), gauge)
+    held = held_pair(loose, len(T_wc), gauge, free)
     X = triangulate(T_cw, K, loose)
     _, X, _ = bundle_adjust(T_cw, X, K, loose, len(T_cw), 20)
     T_first, _, _ = bundle_adjust(T_cw, X, K, loose, held, iters // 2, prior=prior)
@@ -929,11 +1103,20 @@ def adjust(
     return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost, held=first)
 
 
-def held_pair(obs: Observations, n: int, gauge: Literal["first", "linked"]) -> torch.Tensor:
-    """`(n,)` bool: the two consecutive poses an adjustment holds (`adjust`'s `gauge`)."""
+def held_pair(
+    obs: Observations,
+    n: int,
+    gauge: Literal["first", "linked"],
+    free: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """`(n,)` bool: the two consecutive poses an adjustment holds (`adjust`'s `gauge`), the
+    best-linked pair not across a step `free` (`(n - 1,)` bool)."""
     first = 0
     if gauge == "linked" and n > 2:
-        first = int(torch.argmax(links(obs, n)))
+        shared = links(obs, n)
+        if free is not None:
+            shared = shared.masked_fill(free, -1)
+        first = int(torch.argmax(shared))
     elif gauge not in GAUGES:
         raise ValueError(f"bundle.gauge must be first or linked, got {gauge!r}")
     held = torch.zeros(n, dtype=torch.bool)
@@ -981,15 +1164,17 @@ def adjust_tracks(
     cfg: BundleConfig,
     prior: Prior | None,
     flow: FlowTracks | None = None,
+    free: torch.Tensor | None = None,
 ) -> Adjusted:
     """Keyframes `indices` (poses `T_wc`, float64, path order) adjusted on their tracks seen
-    by `cfg.views` of them (`adjust`), the flow's too if given; with `cfg.guided`, the second
+    by `cfg.views` of them (`adjust`; `free`: the steps the prior leaves free, not held
+    by the gauge), the flow's too if given; with `cfg.guided`, the second
     pass on the ORB tracks carried at the first pass's poses to every keyframe that sees them
     (`FeatureTracks.guide`). A second adjustment from the first one's end instead lands
     elsewhere (room0 seed 1: 1.25 -> 2.52 cm with no new observation; docs/results.md)."""
     obs = observed(tracks, flow, indices, cfg)
     if not cfg.guided:
-        return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, gauge=cfg.gauge)
+        return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, gauge=cfg.gauge, free=free)
     linked = 0
 
     def guided(T_cw: torch.Tensor) -> Observations:
@@ -997,5 +1182,5 @@ def adjust_tracks(
         linked = tracks.guide(indices, T_cw, cfg.views, cfg.outlier)
         return observed(tracks, flow, indices, cfg)
 
-    result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided, cfg.gauge)
+    result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided, cfg.gauge, free)
     return dataclasses.replace(result, guided=linked)

@@ -1,11 +1,14 @@
 """The mapper's half of the pipeline: the final trajectory re-anchors every other frame to its
 keyframe, and follows the keyframes a loop correction or a global refinement round moves."""
 
+import logging
+
 import pytest
 import torch
 from walls import CAM, textured_wall_image, wall
 
 from dimslam.common.config import PRESETS
+from dimslam.common.eval.evaluation import umeyama
 from dimslam.common.geometry import pose, sim3
 from dimslam.common.io.datasets import open_dataset
 from dimslam.common.io.synth import write_sequence
@@ -190,6 +193,55 @@ def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follo
     back._describe(frames)
     back.adjust_keyframes()
     _assert_one_scale(back, truth, drifted)
+
+
+def test_a_slide_the_features_contradict_is_adjusted_from_the_motion_before_it(tmp_path, caplog):
+    """The built-in scene's first 40 frames, keyframes every 2nd, tracked from frame 24 on
+    moving backwards (each step's translation turned about): with `bundle.slides` the
+    features' matrices point against it, and the adjusted path goes forwards again; without
+    it the adjustment keeps the slide."""
+    write_sequence(tmp_path / "seq", frames=40, width=320, height=240, noise=0.0)
+    reader = open_dataset(tmp_path / "seq")
+    truth = torch.stack([torch.from_numpy(f.T_wc) for f in reader]).double()
+    tracked = truth.clone()
+    for i in range(24, len(truth)):
+        step = pose.invert(truth[i - 1]) @ truth[i]
+        step[:3, 3] = -step[:3, 3]
+        tracked[i] = tracked[i - 1] @ step
+
+    def adjusted(slides: str) -> torch.Tensor:
+        cfg = apply_overrides(
+            PRESETS["cpu"],
+            {"bundle.enabled": "true", "bundle.refit_iters": "0", "bundle.slides": slides},
+        )
+        back = BackEnd(cfg, reader.camera, torch.device("cpu"), torch.Generator())
+        frames = [
+            FrameState(
+                f.index,
+                f.timestamp,
+                image_tensor(f.rgb, "cpu"),
+                tracked[f.index].float(),
+                f.index % 2 == 0,
+            )
+            for f in reader
+        ]
+        back.add(frames)
+        back.initialized = True
+        back._anchor(frames)
+        back._describe(frames)
+        back.adjust_keyframes()
+        return torch.from_numpy(back.trajectory().poses)
+
+    def tail_error(T: torch.Tensor) -> float:
+        """The last frames' error after the path's similarity to the truth (cm)."""
+        fit = umeyama(T[:, :3, 3].numpy(), truth[:, :3, 3].numpy())
+        placed = torch.from_numpy(fit.apply_poses(T.numpy()))
+        return 100 * float((placed[30:, :3, 3] - truth[30:, :3, 3]).norm(dim=1).max())
+
+    with caplog.at_level(logging.INFO, logger="dimslam.mapper.backend"):
+        repaired = adjusted("true")
+    assert "the features contradict the tracked motion" in caplog.text
+    assert tail_error(repaired) < 0.2 * tail_error(adjusted("false"))
 
 
 def test_frames_a_round_did_not_map_follow_their_keyframes(tmp_path):

@@ -20,6 +20,7 @@ from dimslam.mapper.bundle import (
     adjust_tracks,
     bundle_adjust,
     describe,
+    feature_directions,
     grey_image,
     held_pair,
     links,
@@ -27,6 +28,8 @@ from dimslam.mapper.bundle import (
     odometry_prior,
     prior_for,
     reprojection,
+    slid_start,
+    slides,
     triangulate,
 )
 
@@ -116,6 +119,10 @@ def test_the_gauge_is_the_first_pair_or_the_best_linked_one():
     linked = Observations(k, p, uv, torch.ones(len(k)))
     assert held_pair(linked, 8, "first").nonzero()[:, 0].tolist() == [0, 1]
     assert held_pair(linked, 8, "linked").nonzero()[:, 0].tolist() == [5, 6]
+    # Not across a step the prior leaves free (a slide's guessed motion): the first of
+    # the pairs left, all equally linked.
+    free = torch.tensor([False] * 5 + [True, False])
+    assert held_pair(linked, 8, "linked", free).nonzero()[:, 0].tolist() == [0, 1]
     with pytest.raises(ValueError, match="first or linked"):
         held_pair(linked, 8, "middle")
 
@@ -189,6 +196,69 @@ def test_a_stretch_no_feature_sees_keeps_the_scale_of_its_neighbours():
 
     assert float(adjusted(BundleConfig(linked=0))) > 0.1  # the second part stays 1.3x
     assert float(adjusted(BundleConfig())) < 1e-3
+
+
+def test_a_free_step_is_not_held_by_the_prior():
+    """The steps `free` (a slide found by the features) keep no turn, direction or length."""
+    T_wc, _, _ = _scene(cameras=10)
+    twist = torch.tensor([0.05, 0.02, -0.03, 0.01, -0.04, 0.02], dtype=torch.float64)
+    about = T_wc[4] @ pose.exp_se3(twist) @ pose.invert(T_wc[4])
+    moved = T_wc.clone()
+    moved[5:] = about @ T_wc[5:]  # step 4 -> 5 changed, every other step as it was
+    free = torch.zeros(9, dtype=torch.bool)
+    free[4] = True
+    for length in (None, 0.05):
+        shared = torch.zeros(9, dtype=torch.long) if length else None
+        held = odometry_prior(T_wc, 0.2, 0.02, length, shared)
+        loose = odometry_prior(T_wc, 0.2, 0.02, length, shared, free=free)
+        assert float(held(pose.invert(moved)).abs().max()) > 1.0
+        assert float(loose(pose.invert(moved)).abs().max()) < 1e-9
+
+
+def test_a_slide_is_many_keyframes_against_the_tracked_motion_not_one():
+    cosine, inliers = np.ones(24), np.full(24, 300)
+    cosine[:3] = np.nan  # no keyframe 3 before them
+    cosine[4] = -0.9  # one wrong matrix
+    cosine[[10, 11, 13, 14, 15]] = -0.8  # 5 of 7 against, keyframe 12 agrees
+    cosine[18:] = -0.9
+    inliers[18:] = 50  # too few inliers to say anything
+    assert slides(cosine, inliers) == [(10, 15)]
+    assert slides(np.ones(5), np.full(5, 300)) == []
+    # It reaches over the keyframes next to it that do not clearly confirm the tracked
+    # motion, whatever their inliers, and to the end where fewer than 7 keyframes are left.
+    cosine[[8, 9]], inliers[9] = 0.3, 20
+    assert slides(cosine, inliers) == [(8, 15)]
+    cosine[16:18] = -0.2
+    assert slides(cosine, inliers) == [(8, 23)]
+
+
+def test_the_features_see_a_slide_and_the_adjustment_undoes_it():
+    """A steady walk whose tracked motion from camera 8 on slides (it moves back and turns
+    half as much again): the essential matrices between cameras 3 apart point against it,
+    the start follows the motion before the slide (the truth: the walk is steady), and
+    the adjustment from there, with no prior on the slid steps, ends on the truth; from the
+    tracked poses with the prior it does not."""
+    T_wc, X, obs = _scene(cameras=16, points=300)
+    step = pose.invert(T_wc[0]) @ T_wc[1]
+    slid_step = pose.exp_se3(torch.tensor([-0.1, 0.0, 0.0, 0.0, 0.045, 0.0], dtype=torch.float64))
+    assert float(step[0, 3]) > 0.09  # the true step goes along +x
+    tracked = T_wc.clone()
+    for k in range(9, 16):
+        tracked[k] = tracked[k - 1] @ slid_step
+    cosine, inliers = feature_directions(tracked, K, obs)
+    assert (cosine[3:9] > 0.99).all() and (cosine[12:] < -0.9).all()
+    assert (inliers[3:] >= 250).all()
+    stretches = slides(cosine, inliers)
+    assert len(stretches) == 1 and stretches[0][1] == 15
+    start, free = slid_start(tracked, list(range(16)), stretches)
+    assert torch.allclose(start, T_wc, atol=1e-9)
+    trusted = stretches[0][0] - 3
+    assert free.tolist() == [trusted <= k < 15 for k in range(15)]
+    cfg = BundleConfig(linked=0)
+    ends = adjust(start, K, obs, 3.0, 30, prior_for(start, obs, cfg, free))
+    assert torch.allclose(ends.T_wc[:, :3, 3], T_wc[:, :3, 3], atol=1e-5)
+    kept = adjust(tracked, K, obs, 3.0, 30, prior_for(tracked, obs, cfg))
+    assert float((kept.T_wc[:, :3, 3] - T_wc[:, :3, 3]).norm(dim=1).max()) > 0.1
 
 
 def test_tracks_link_the_features_of_a_rendered_walk(tmp_path):
