@@ -115,7 +115,11 @@ PRESETS: dict[str, SlamConfig] = {
             # machine (Intel, 3 seeds: room0 2.34 -> 2.23, room3 3.68 -> 3.66, room5 9.53 ->
             # 9.38, 7-Scenes the same; AMD, seeds 1 / 2: 7-Scenes 11.42 / 8.13 ->
             # 9.65 / 7.44; docs/results.md, "The adjustment's gauge over the table").
-            bundle=BundleConfig(enabled=True, flow=300, flow_near=3, gauge="linked"),
+            # A stretch where the features' essential matrices point against the tracked
+            # motion (room5's last turn, where the tracker slides backwards) is started from
+            # the motion before it, with no prior on its steps: room5 9.38 -> 7.20, the other
+            # sequences have no such stretch (docs/results.md, session 59).
+            bundle=BundleConfig(enabled=True, flow=300, flow_near=3, gauge="linked", slides=True),
             width=320,
         ),
         _GENTLE,

@@ -181,7 +181,8 @@ class BundleConfig:
         "contradicts the tracked direction of motion over many keyframes (`slides`: the "
         "tracker slid into a wrong turn the images hardly tell from a sideways move, room5's "
         "last turn), and adjust them from the motion before them with no prior on their "
-        "steps (`slid_start`).",
+        "steps (`slid_start`; on in the cpu preset). Room5 9.38 -> 7.20 cm over 3 seeds, "
+        "no stretch found on room0, room3 or 7-Scenes (docs/results.md, session 59).",
     )
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
