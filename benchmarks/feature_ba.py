@@ -77,6 +77,7 @@ from dimslam.mapper.bundle import (
     held_pair,
     links,
     observed,
+    pointing_against,
     prior_for,
     reprojection,
     slide_checked,
@@ -326,7 +327,7 @@ def main() -> None:
     if args.slides:
         check = slide_checked(run, K, tracks, flow, indices, config)
         blind_start, free = check.start, check.free
-        against = (check.inliers >= SLIDE_INLIERS) & (np.nan_to_num(check.cosine, nan=1) < 0)
+        against = pointing_against(check.cosine, check.inliers)
         print(
             f"essential matrices against the tracked motion from {SLIDE_GAP} keyframes before "
             f"({SLIDE_INLIERS}+ inliers; keyframe: cosine / inliers): "

@@ -937,6 +937,12 @@ def feature_directions(
     return cosine, inliers
 
 
+def pointing_against(cosine: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """`(n,)` bool: the keyframes whose essential matrix (`feature_directions`, of
+    `SLIDE_INLIERS` inliers or more) points against the tracked motion."""
+    return (inliers >= SLIDE_INLIERS) & (np.nan_to_num(cosine, nan=1.0) < 0)
+
+
 def slides(cosine: np.ndarray, inliers: np.ndarray) -> list[tuple[int, int]]:
     """The stretches `(first, last)` of keyframes where the features contradict the tracked
     motion (`feature_directions`): at least `SLIDE_LEAST` of `SLIDE_WINDOW` consecutive
@@ -945,7 +951,7 @@ def slides(cosine: np.ndarray, inliers: np.ndarray) -> list[tuple[int, int]]:
     clearly confirm the tracked motion (`SLIDE_CONFIRMED`; room5 seed 0: keyframes 84-92
     about the five of 93-98), and to the path's end where fewer than `SLIDE_WINDOW`
     keyframes are left after it (too few to show that the slide ended)."""
-    against = (inliers >= SLIDE_INLIERS) & (np.nan_to_num(cosine, nan=1.0) < 0)
+    against = pointing_against(cosine, inliers)
     marked = np.zeros(len(against), bool)
     for start in range(max(len(against) - SLIDE_WINDOW + 1, 0)):
         window = against[start : start + SLIDE_WINDOW]
