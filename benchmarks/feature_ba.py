@@ -243,8 +243,9 @@ def main() -> None:
     p.add_argument(
         "--slides",
         action="store_true",
-        help="blind start: stretches where the features contradict the tracked motion "
-        "adjusted from the motion before them, no prior on their steps (`bundle.slides`)",
+        help="stretches where the features contradict the tracked motion: the blind start "
+        "takes them from the motion before them, and every start's prior leaves their steps "
+        "free (`bundle.slides`)",
     )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
@@ -343,7 +344,7 @@ def main() -> None:
     print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
     blind = None
     for name in args.starts.split(","):
-        T_wc = starts["run" if name == "blind" else name]
+        T_wc = blind_start if name == "blind" else starts[name]
         T_cw = pose.invert(T_wc)
         if name == "blind":
             result = adjust_tracks(tracks, indices, blind_start, K, config, prior, flow, free)
@@ -356,8 +357,6 @@ def main() -> None:
             gauge = held_pair(obs, n, args.gauge, free)
             T_cw, _, cost = bundle_adjust(T_cw, X, K, obs, gauge, args.iters, prior=prior)
             T_ba, held = pose.invert(T_cw), f"{points_only:.1f}"
-        if name == "blind":
-            T_wc = blind_start
         before, after = keyframe_ate(T_wc.numpy(), gt), keyframe_ate(T_ba.numpy(), gt)
         print(f"{name:6s}  {before:6.2f}   {held:>16s}   {cost:14.1f}   {after:6.2f}")
     if args.fit_camera:
