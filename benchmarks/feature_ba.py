@@ -1,6 +1,7 @@
 """Whether sparse features see a run's drift: ORB bundle adjustment over its keyframes.
 
-    python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR [--length L] [--linked N]]
+    python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR [--length L] [--linked N]
+        [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign]] [--save POSES.npy]
 
@@ -32,7 +33,8 @@ photometric tracker's local motion, which is accurate, with the scale left to th
 Where two consecutive keyframes share fewer than `--linked` points, their step's length
 relative to the step before is held too (within `--length`, log of the ratio), so that a
 stretch no feature sees keeps its neighbours' scale (as `bundle.length` and `bundle.linked`
-in the mapper; `--linked 0` leaves every length to the features).
+in the mapper; `--linked 0` leaves every length to the features). `--length-linked L`
+holds the ratios of the linked steps too, within L (`bundle.length_linked`).
 
 `--flow N` adds N corners followed by optical flow through every frame of the sequence
 between the first and the last keyframe, observed at the keyframes (`bundle.flow`,
@@ -191,6 +193,13 @@ def main() -> None:
         "this (log of the ratio) where --linked features do not link its keyframes",
     )
     p.add_argument(
+        "--length-linked",
+        type=float,
+        default=defaults.length_linked,
+        help="with --odometry: the same hold where features link the keyframes (0: none; "
+        "bundle.length_linked)",
+    )
+    p.add_argument(
         "--linked",
         type=int,
         default=defaults.linked,
@@ -250,6 +259,8 @@ def main() -> None:
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
+    if args.length_linked < 0:
+        p.error("--length-linked must be >= 0")
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
@@ -283,6 +294,7 @@ def main() -> None:
         guided=args.guided,
         length=args.length,
         linked=args.linked,
+        length_linked=args.length_linked,
         flow_near=args.flow_near,
         gauge=args.gauge,
     )

@@ -111,6 +111,14 @@ class BundleConfig:
         "step before, where features do not link the step's keyframes (`linked`). The "
         "tracked steps' ratios are off by 0.04-0.05 (median over the rooms' runs).",
     )
+    length_linked: float = option(
+        0.0,
+        "The odometry prior's standard error on the log of a step's length relative to the "
+        "step before where features do link the step's keyframes (0: left to the features "
+        "there). The features' tracks are short (3-4 keyframes), so their scale wanders "
+        "along the path; a loose hold on the tracked ratios keeps it near the tracker's. "
+        "0.2: room0, room5 and 7-Scenes gain, room3 loses 0.04 cm (docs/results.md).",
+    )
     linked: int = option(
         10,
         "Points two consecutive keyframes must share for their step's length to be left to "
@@ -205,6 +213,10 @@ class BundleConfig:
             raise ValueError(f"bundle.views must be at least 2, got {self.views}")
         if min(self.outlier, self.turn_deg, self.direction, self.length) <= 0:
             raise ValueError("bundle: outlier, turn_deg, direction and length must be positive")
+        if self.length_linked < 0:
+            raise ValueError(
+                f"bundle.length_linked must be 0 (off) or positive, got {self.length_linked}"
+            )
 
 
 @dataclass
@@ -836,6 +848,7 @@ def odometry_prior(
     linked: torch.Tensor | None = None,
     full: int = 1,
     free: torch.Tensor | None = None,
+    length_linked: float = 0.0,
 ) -> Prior:
     """Whitened residuals (of world-to-camera poses) that keep each step between
     consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
@@ -847,7 +860,8 @@ def odometry_prior(
     ratio within `length`; lengths softened by a quarter of the median so that turns in
     place count little), as far as features do not link its poses: in full where its two
     poses share no point (`linked`, from `links`), not at all from `full` shared points
-    on. Steps that no feature sees then keep their neighbours' scale instead of any.
+    on. Steps that no feature sees then keep their neighbours' scale instead of any. With
+    `length_linked`, every ratio is held at least that loosely, the linked ones too.
 
     Steps `free` (`(n - 1,)` bool, from `slid_start`) are not held at all: the tracked
     motion there is what the adjustment is to undo."""
@@ -869,6 +883,8 @@ def odometry_prior(
     # A ratio joins two steps: held as much as the worse linked of them, so that a stretch
     # no feature sees takes its scale from the steps on either side.
     ratio_weight = torch.maximum(held[1:], held[:-1]) / (length or 1.0)
+    if length_linked > 0:
+        ratio_weight = ratio_weight.clamp_min(1 / length_linked)
     step_weight = torch.ones(len(size), dtype=T_wc.dtype)
     if free is not None:
         step_weight = (~free).to(T_wc.dtype)
@@ -902,7 +918,14 @@ def prior_for(
         return odometry_prior(T_wc, cfg.turn_deg, cfg.direction, free=free)
     shared = links(obs, len(T_wc))
     return odometry_prior(
-        T_wc, cfg.turn_deg, cfg.direction, cfg.length, shared, cfg.linked, free=free
+        T_wc,
+        cfg.turn_deg,
+        cfg.direction,
+        cfg.length,
+        shared,
+        cfg.linked,
+        free=free,
+        length_linked=cfg.length_linked,
     )
 
 

@@ -198,6 +198,29 @@ def test_a_stretch_no_feature_sees_keeps_the_scale_of_its_neighbours():
     assert float(adjusted(BundleConfig())) < 1e-3
 
 
+def test_length_linked_holds_the_ratios_loosely_where_features_link_the_steps():
+    """Linked steps' lengths are the features' alone by default; with `length_linked` their
+    ratios are held as an unlinked step's would be at that standard error, and an unlinked
+    step keeps its own tighter `length`."""
+    T_wc, _, _ = _scene(cameras=10)
+    stretched = T_wc.clone()
+    stretched[5:, :3, 3] = T_wc[4, :3, 3] + 1.2 * (T_wc[5:, :3, 3] - T_wc[4, :3, 3])
+    T_cw = pose.invert(stretched)  # step 4 -> 5 and on a fifth longer, the same directions
+    linked = torch.full((9,), 100)
+    free = odometry_prior(T_wc, 0.2, 0.02, 0.05, linked, 10)
+    assert float(free(T_cw).abs().max()) < 1e-9
+    held = odometry_prior(T_wc, 0.2, 0.02, 0.05, linked, 10, length_linked=0.2)
+    as_unlinked = odometry_prior(T_wc, 0.2, 0.02, 0.2, torch.zeros(9, dtype=torch.long), 10)
+    assert torch.allclose(held(T_cw), as_unlinked(T_cw))
+    assert float(held(T_cw).abs().max()) > 0.5
+    linked[4] = 0
+    tighter = odometry_prior(T_wc, 0.2, 0.02, 0.05, linked, 10, length_linked=0.2)
+    assert float(tighter(T_cw).abs().max()) == pytest.approx(4 * float(held(T_cw).abs().max()))
+    _, _, obs = _scene(cameras=10)
+    by_config = prior_for(T_wc, obs, BundleConfig(length_linked=0.2))
+    assert torch.allclose(by_config(T_cw), held(T_cw))
+
+
 def test_a_free_step_is_not_held_by_the_prior():
     """The steps `free` (a slide found by the features) keep no turn, direction or length."""
     T_wc, _, _ = _scene(cameras=10)
@@ -447,6 +470,8 @@ def test_settings_are_checked():
         BundleConfig(flow_near=-2)
     with pytest.raises(ValueError, match="gauge"):
         BundleConfig(gauge="middle")
+    with pytest.raises(ValueError, match="length_linked"):
+        BundleConfig(length_linked=-0.2)
 
 
 def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch, capsys):
