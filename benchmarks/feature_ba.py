@@ -204,7 +204,8 @@ def main() -> None:
         type=int,
         default=defaults.linked,
         help="with --odometry: points two consecutive keyframes share from which their "
-        "step's length is left to the features (0: lengths free everywhere)",
+        "step's length is left to the features (0: lengths free everywhere but for "
+        "--length-linked)",
     )
     p.add_argument("--width", type=int, default=320, help="image width (the cpu preset's)")
     p.add_argument(

@@ -126,7 +126,7 @@ class BundleConfig:
         "Without it, a stretch no feature sees (room5's textureless wall) leaves the scale "
         "of the path after it free, and the adjustment puts it anywhere; held wherever fewer "
         "than 50 points link the keyframes, it holds room3's drift too (docs/results.md). "
-        "0: lengths free everywhere.",
+        "0: lengths free everywhere but for `length_linked`.",
     )
     min_described: float = option(
         0.5,
@@ -860,8 +860,9 @@ def odometry_prior(
     ratio within `length`; lengths softened by a quarter of the median so that turns in
     place count little), as far as features do not link its poses: in full where its two
     poses share no point (`linked`, from `links`), not at all from `full` shared points
-    on. Steps that no feature sees then keep their neighbours' scale instead of any. With
-    `length_linked`, every ratio is held at least that loosely, the linked ones too.
+    on (`full` 0: none held so). Steps that no feature sees then keep their neighbours'
+    scale instead of any. With `length_linked`, every ratio is held at least that loosely,
+    the linked ones too.
 
     Steps `free` (`(n - 1,)` bool, from `slid_start`) are not held at all: the tracked
     motion there is what the adjustment is to undo."""
@@ -879,7 +880,7 @@ def odometry_prior(
     ratios = log_ratios(size.ravel())
     held = torch.ones(len(size), dtype=T_wc.dtype)
     if linked is not None:
-        held = (1 - linked.to(T_wc.dtype) / full).clamp_min(0)
+        held = (1 - linked.to(T_wc.dtype) / full).clamp_min(0) if full else torch.zeros_like(held)
     # A ratio joins two steps: held as much as the worse linked of them, so that a stretch
     # no feature sees takes its scale from the steps on either side.
     ratio_weight = torch.maximum(held[1:], held[:-1]) / (length or 1.0)
@@ -914,7 +915,7 @@ def prior_for(
 ) -> Prior:
     """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`, none
     on the steps `free`."""
-    if cfg.linked == 0:
+    if cfg.linked == 0 and cfg.length_linked == 0:
         return odometry_prior(T_wc, cfg.turn_deg, cfg.direction, free=free)
     shared = links(obs, len(T_wc))
     return odometry_prior(

@@ -219,6 +219,8 @@ def test_length_linked_holds_the_ratios_loosely_where_features_link_the_steps():
     _, _, obs = _scene(cameras=10)
     by_config = prior_for(T_wc, obs, BundleConfig(length_linked=0.2))
     assert torch.allclose(by_config(T_cw), held(T_cw))
+    everywhere = prior_for(T_wc, obs, BundleConfig(linked=0, length_linked=0.2))
+    assert torch.allclose(everywhere(T_cw), held(T_cw))  # linked 0: no step held tighter
 
 
 def test_a_free_step_is_not_held_by_the_prior():
