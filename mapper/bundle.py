@@ -860,8 +860,8 @@ def odometry_prior(
     ratio within `length`; lengths softened by a quarter of the median so that turns in
     place count little), as far as features do not link its poses: in full where its two
     poses share no point (`linked`, from `links`), not at all from `full` shared points
-    on (`full` 0: none held so). Steps that no feature sees then keep their neighbours'
-    scale instead of any. With `length_linked`, every ratio is held at least that loosely,
+    on. Steps that no feature sees then keep their neighbours' scale instead of any. With
+    `length_linked` (with or without `length`), every ratio is held at least that loosely,
     the linked ones too.
 
     Steps `free` (`(n - 1,)` bool, from `slid_start`) are not held at all: the tracked
@@ -878,12 +878,13 @@ def odometry_prior(
         return log[1:] - log[:-1]
 
     ratios = log_ratios(size.ravel())
+    lengths = length is not None or length_linked > 0
     held = torch.ones(len(size), dtype=T_wc.dtype)
     if linked is not None:
-        held = (1 - linked.to(T_wc.dtype) / full).clamp_min(0) if full else torch.zeros_like(held)
+        held = (1 - linked.to(T_wc.dtype) / full).clamp_min(0)
     # A ratio joins two steps: held as much as the worse linked of them, so that a stretch
     # no feature sees takes its scale from the steps on either side.
-    ratio_weight = torch.maximum(held[1:], held[:-1]) / (length or 1.0)
+    ratio_weight = torch.maximum(held[1:], held[:-1]) / (length or math.inf)
     if length_linked > 0:
         ratio_weight = ratio_weight.clamp_min(1 / length_linked)
     step_weight = torch.ones(len(size), dtype=T_wc.dtype)
@@ -899,15 +900,15 @@ def odometry_prior(
         t = step[:, :3, 3] / moved.clamp_min(1e-12)
         turn = turn / math.radians(turn_deg) * step_weight[:, None]
         parts = [turn.ravel(), ((t - heading) * weight).ravel()]
-        if length is not None:
+        if lengths:
             parts.append((log_ratios(moved.ravel()) - ratios) * ratio_weight)
         return torch.cat(parts)
 
     steps = torch.arange(len(size))
     first = torch.cat([steps.repeat_interleave(3), steps.repeat_interleave(3)])
-    if length is not None:
+    if lengths:
         first = torch.cat([first, steps[:-1]])
-    return Prior(residuals, first, 3 if length is not None else 2)
+    return Prior(residuals, first, 3 if lengths else 2)
 
 
 def prior_for(
@@ -915,8 +916,10 @@ def prior_for(
 ) -> Prior:
     """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`, none
     on the steps `free`."""
-    if cfg.linked == 0 and cfg.length_linked == 0:
-        return odometry_prior(T_wc, cfg.turn_deg, cfg.direction, free=free)
+    if cfg.linked == 0:
+        return odometry_prior(
+            T_wc, cfg.turn_deg, cfg.direction, free=free, length_linked=cfg.length_linked
+        )
     shared = links(obs, len(T_wc))
     return odometry_prior(
         T_wc,

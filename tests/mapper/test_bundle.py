@@ -212,6 +212,8 @@ def test_length_linked_holds_the_ratios_loosely_where_features_link_the_steps():
     held = odometry_prior(T_wc, 0.2, 0.02, 0.05, linked, 10, length_linked=0.2)
     as_unlinked = odometry_prior(T_wc, 0.2, 0.02, 0.2, torch.zeros(9, dtype=torch.long), 10)
     assert torch.allclose(held(T_cw), as_unlinked(T_cw))
+    alone = odometry_prior(T_wc, 0.2, 0.02, length_linked=0.2)  # no `length`, no links
+    assert torch.allclose(alone(T_cw), held(T_cw))
     assert float(held(T_cw).abs().max()) > 0.5
     linked[4] = 0
     tighter = odometry_prior(T_wc, 0.2, 0.02, 0.05, linked, 10, length_linked=0.2)
