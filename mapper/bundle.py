@@ -76,9 +76,9 @@ class BundleConfig:
     enabled: bool = option(
         False,
         "At the end of a run, refine every keyframe pose by its ORB features' reprojection "
-        "error with the tracked steps' turns and directions as a prior (their lengths only "
-        "where features do not link the keyframes), and move the other frames and the map "
-        "with them (on in the cpu preset).",
+        "error with the tracked steps' turns and directions as a prior (their lengths where "
+        "features do not link the keyframes, and loosely everywhere with `length_linked`), "
+        "and move the other frames and the map with them (on in the cpu preset).",
     )
     features: int = option(1500, "ORB features per keyframe.")
     neighbours: int = option(8, "Keyframes before each new one that it is matched with.")
@@ -117,7 +117,9 @@ class BundleConfig:
         "step before where features do link the step's keyframes (0: left to the features "
         "there). The features' tracks are short (3-4 keyframes), so their scale wanders "
         "along the path; a loose hold on the tracked ratios keeps it near the tracker's. "
-        "0.2: room0, room5 and 7-Scenes gain, room3 loses 0.04 cm (docs/results.md).",
+        "0.2 (the cpu preset's): with ORB and the flow about unlinked steps, room0, room5 "
+        "and 7-Scenes gain, room3 loses 0.04 cm (session 60); with the flow everywhere, "
+        "realigned, room0 2.19 -> 2.08 and 7-Scenes 4.73 -> 4.49 (docs/results.md).",
     )
     linked: int = option(
         10,
@@ -174,14 +176,16 @@ class BundleConfig:
         -1,
         "Use the flow's observations only at the keyframes within this many of a step that "
         "fewer than `linked` ORB points link (room5's wall; room0 and 7-Scenes have no such "
-        "step): -1, everywhere.",
+        "step): -1, everywhere (the cpu preset's since session 61).",
     )
     flow_realign: bool = option(
         False,
         "At each keyframe, align every corner the flow follows again with its patch in the "
         "keyframe it started at (the frame-to-frame flow's drift does not add up: on "
         "7-Scenes its tracks reproject 1.5 px from the true poses at the median instead of "
-        "2.8). 7-Scenes 5.54 -> 4.32 cm, the rooms worse (docs/results.md, session 38).",
+        "2.8). With the flow everywhere, 7-Scenes 6.34 -> 4.73 cm, room3 2.50 -> 2.16, room0 "
+        "and room5 give back part of the flow's gain (on in the cpu preset; docs/results.md, "
+        "session 61).",
     )
     slides: bool = option(
         False,
