@@ -500,6 +500,13 @@ FLOW_CHECK = 0.3
 FLOW_REALIGN = 1.0
 """Pixels a corner's alignment with its first keyframe (`BundleConfig.flow_realign`) may
 move it from where the flow put it before its track ends."""
+FLOW_REALIGN_WINDOW = 7
+"""Lucas-Kanade's window (pixels) for that alignment. Across keyframes the patch about a
+corner changes shape with the viewpoint, and a wide window's best shift follows the patch
+as a whole, not the corner: aligned in 21 pixels (the flow's window) the tracks hold the
+features-only adjustment from the true poses 6.23 cm off on room5 seed 0 and 3.58 on
+room0, in 7 pixels 1.25 and 0.84 (`benchmarks/feature_ba.py --starts truth`;
+docs/results.md, session 62)."""
 FLOW_SPACING = 8
 """The least pixels between two corners followed."""
 FLOW_QUALITY = 0.001
@@ -550,7 +557,7 @@ class FlowTracks:
         up over a track. Where the two disagree by `FLOW_REALIGN` pixels or more, the track
         ends."""
         keep = np.ones(len(self.points), bool)
-        window = (FLOW_WINDOW, FLOW_WINDOW)
+        window = (FLOW_REALIGN_WINDOW, FLOW_REALIGN_WINDOW)
         for a in np.unique(self.anchor):
             rows = np.flatnonzero(self.anchor == a)
             guess = self.points[rows].reshape(-1, 1, 2).copy()
