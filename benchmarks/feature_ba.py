@@ -3,7 +3,7 @@
     python benchmarks/feature_ba.py RUN DATASET [--odometry DEG DIR [--length L] [--linked N]
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
-        [--guided] [--flow N [--flow-realign]] [--save POSES.npy]
+        [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -66,6 +66,7 @@ from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.io.trajectory import Trajectory, read_tum, write_tum
 from dimslam.mapper.backend import brought_back
 from dimslam.mapper.bundle import (
+    FLOW_REALIGN_WINDOW,
     GAUGES,
     SLIDE_GAP,
     SLIDE_INLIERS,
@@ -237,6 +238,13 @@ def main() -> None:
         "(`bundle.flow_realign`)",
     )
     p.add_argument(
+        "--realign-window",
+        type=int,
+        default=FLOW_REALIGN_WINDOW,
+        help="pixels: Lucas-Kanade's window for that alignment (the mapper's "
+        "FLOW_REALIGN_WINDOW; 21 before session 62)",
+    )
+    p.add_argument(
         "--save", type=Path, help="blind start: write the adjusted keyframe poses here (.npy)"
     )
     p.add_argument(
@@ -262,6 +270,8 @@ def main() -> None:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
     if args.length_linked < 0:
         p.error("--length-linked must be >= 0")
+    if args.realign_window < 3:
+        p.error("--realign-window must be >= 3 pixels")
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
@@ -269,7 +279,7 @@ def main() -> None:
     K = torch.from_numpy(reader.camera.K)
     wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}
     images, truth, every_truth, at = {}, {}, {}, {}
-    flow = FlowTracks(args.flow, args.flow_realign) if args.flow > 0 else None
+    flow = FlowTracks(args.flow, args.flow_realign, args.realign_window) if args.flow > 0 else None
     for i, frame in enumerate(reader):
         every_truth[round(frame.timestamp, 4)] = frame.T_wc
         k = wanted.get(round(frame.timestamp, 4))

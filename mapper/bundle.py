@@ -523,10 +523,13 @@ class FlowTracks:
     to follow without a descriptor. New corners start at keyframes, away from those
     followed; a corner is dropped where the flow back does not return it within
     `FLOW_CHECK` pixels or it leaves the image. With `realign`, each corner is aligned
-    again at every keyframe with its patch in the keyframe it started at."""
+    again at every keyframe with its patch in the keyframe it started at, in a `window`
+    pixels wide (`FLOW_REALIGN_WINDOW`)."""
 
-    def __init__(self, corners: int, realign: bool = False) -> None:
-        self.corners, self.realign = corners, realign
+    def __init__(
+        self, corners: int, realign: bool = False, window: int = FLOW_REALIGN_WINDOW
+    ) -> None:
+        self.corners, self.realign, self.window = corners, realign, window
         self.previous: np.ndarray | None = None
         self.last = -1
         self.points = np.zeros((0, 2), np.float32)  # the corners followed, in the last frame
@@ -557,7 +560,7 @@ class FlowTracks:
         up over a track. Where the two disagree by `FLOW_REALIGN` pixels or more, the track
         ends."""
         keep = np.ones(len(self.points), bool)
-        window = (FLOW_REALIGN_WINDOW, FLOW_REALIGN_WINDOW)
+        window = (self.window, self.window)
         for a in np.unique(self.anchor):
             rows = np.flatnonzero(self.anchor == a)
             guess = self.points[rows].reshape(-1, 1, 2).copy()
