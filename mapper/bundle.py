@@ -523,8 +523,8 @@ class FlowTracks:
     to follow without a descriptor. New corners start at keyframes, away from those
     followed; a corner is dropped where the flow back does not return it within
     `FLOW_CHECK` pixels or it leaves the image. With `realign`, each corner is aligned
-    again at every keyframe with its patch in the keyframe it started at, in a `window`
-    pixels wide (`FLOW_REALIGN_WINDOW`)."""
+    again at every keyframe with its patch in the keyframe it started at, in a window
+    `window` pixels wide (`FLOW_REALIGN_WINDOW`)."""
 
     def __init__(
         self, corners: int, realign: bool = False, window: int = FLOW_REALIGN_WINDOW
