@@ -185,7 +185,9 @@ class BundleConfig:
         "7-Scenes its tracks reproject 1.5 px from the true poses at the median instead of "
         "2.8). With the flow everywhere, 7-Scenes 6.34 -> 4.73 cm, room3 2.50 -> 2.16, room0 "
         "and room5 give back part of the flow's gain (on in the cpu preset; docs/results.md, "
-        "session 61).",
+        "session 61). Those figures had the alignment in the flow's 21-pixel window; in "
+        "`FLOW_REALIGN_WINDOW`'s 7 since session 62: room0 0.94, room3 1.81, room5 4.86, "
+        "7-Scenes 4.47 cm.",
     )
     slides: bool = option(
         False,
