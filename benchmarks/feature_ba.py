@@ -265,6 +265,13 @@ def main() -> None:
         "takes them from the motion before them, and every start's prior leaves their steps "
         "free (`bundle.slides`)",
     )
+    p.add_argument(
+        "--weigh",
+        type=int,
+        default=0,
+        help="rounds of variance component estimation of the prior's turns against the "
+        "reprojection errors, each re-solving the second pass (`bundle.weigh`)",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -308,6 +315,7 @@ def main() -> None:
         length_linked=args.length_linked,
         flow_near=args.flow_near,
         gauge=args.gauge,
+        weigh=args.weigh,
     )
     unjudged = observed(tracks, flow, indices, config)
     gt = np.stack([truth[k] for k in range(n)])
@@ -375,6 +383,13 @@ def main() -> None:
             blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
             if args.guided:
                 kept += f" ({result.guided} by guided matching)"
+            if result.factors:
+                turns = result.factors[0] ** 0.5
+                degrees = turn_deg * turns * result.reprojection
+                kept += (
+                    f"; the prior's turns weighed x {turns:.2f} ({degrees:.2f} degrees for "
+                    f"reprojection errors of {result.reprojection:.2f} px)"
+                )
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)
             gauge = held_pair(obs, n, args.gauge, free)

@@ -122,6 +122,10 @@ PRESETS: dict[str, SlamConfig] = {
             # motion (room5's last turn, where the tracker slides backwards) is started from
             # the motion before it, with no prior on its steps: room5 9.38 -> 7.20, the other
             # sequences have no such stretch (docs/results.md, session 59).
+            # The prior's turns weighed again by their residuals against the reprojection
+            # errors' (variance component estimation, 3 rounds): Intel, 3 seeds, room0 0.94
+            # -> 0.93, room3 1.81 -> 1.79, room5 4.86 -> 4.55, 7-Scenes 4.47 -> 4.33
+            # (docs/results.md, session 63).
             bundle=BundleConfig(
                 enabled=True,
                 flow=300,
@@ -129,6 +133,7 @@ PRESETS: dict[str, SlamConfig] = {
                 length_linked=0.2,
                 gauge="linked",
                 slides=True,
+                weigh=3,
             ),
             width=320,
         ),

@@ -449,6 +449,14 @@ class BackEnd:
             float(scales.max()),
             time.perf_counter() - started,
         )
+        if result.factors:
+            log.info(
+                "the prior's turns weighed by the residuals: x %.2f (%.2f degrees; the "
+                "features reproject within %.2f px)",
+                math.sqrt(result.factors[0]),
+                cfg.turn_deg * math.sqrt(result.factors[0]) * result.reprojection,
+                result.reprojection,
+            )
         if cfg.refit_iters > 0:
             order = sorted(range(len(everyone)), key=lambda k: -moved[k])
             anchors = [everyone[k] for k in order[: max(1, cfg.refit_iters // 20)]]

@@ -198,14 +198,25 @@ class BundleConfig:
         "steps (`slid_start`; on in the cpu preset). Room5 9.38 -> 7.20 cm over 3 seeds, "
         "no stretch found on room0, room3 or 7-Scenes (docs/results.md, session 59).",
     )
+    weigh: int = option(
+        0,
+        "Rounds of variance component estimation (`variance_factors`): after the "
+        "adjustment, the prior's turns are weighed again by how far their residuals are, "
+        "for their redundancy, from the reprojection errors', and the second pass solved "
+        "again (0: `turn_deg` as configured; `WEIGHED` says why the turns alone).",
+    )
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
     )
 
     def __post_init__(self) -> None:
-        if self.features < 8 or self.neighbours < 1 or self.iters < 0 or self.refit_iters < 0:
+        if (
+            self.features < 8
+            or self.neighbours < 1
+            or min(self.iters, self.refit_iters, self.weigh) < 0
+        ):
             raise ValueError(
-                "bundle: features >= 8, neighbours >= 1, iters >= 0 and refit_iters >= 0 needed"
+                "bundle: features >= 8, neighbours >= 1, iters, refit_iters and weigh >= 0 needed"
             )
         if self.linked < 0 or self.every < 0 or self.flow < 0:
             raise ValueError("bundle: linked, every and flow must be at least 0")
@@ -693,6 +704,80 @@ def _schur_pairs(obs: Observations, free: torch.Tensor) -> tuple[torch.Tensor, t
     return torch.cat(first), torch.cat(second)
 
 
+def _normal_equations(
+    T_cw: torch.Tensor,
+    K: torch.Tensor,
+    obs: Observations,
+    r: torch.Tensor,
+    c: torch.Tensor,
+    free: torch.Tensor,
+    col: torch.Tensor,
+    m: int,
+    delta: float,
+) -> tuple[torch.Tensor, ...]:
+    """The Huber-weighted (IRLS) normal equations of the reprojection residuals `r` (camera
+    points `c`) over the points and the `m` moving poses (`free` observations, each in its
+    pose's block `col`): point blocks `H_pp` `(points, 3, 3)` and gradient `g_p`, each
+    observation's pose-point block `H_cp` `(n, 6, 3)`, pose blocks `H_cc` `(m, m, 6, 6)` and
+    gradient `g_c` `(m, 6)`."""
+    norm = r.norm(dim=1)
+    w = torch.where(norm <= delta, torch.ones_like(norm), delta / norm.clamp_min(1e-12))
+    x, y, z = c.unbind(1)
+    zero = torch.zeros_like(z)
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    dproj = (
+        torch.stack(
+            [
+                torch.stack([fx / z, zero, -fx * x / z**2], 1),
+                torch.stack([zero, fy / z, -fy * y / z**2], 1),
+            ],
+            1,
+        )
+        / obs.sigma[:, None, None]
+    )
+    J_pose = torch.cat([dproj, -dproj @ pose.hat(c)], 2)  # (n, 2, 6): left (v, w)
+    J_point = dproj @ T_cw[obs.k, :3, :3]  # (n, 2, 3)
+    wJ_point = w[:, None, None] * J_point
+    H_pp = torch.zeros(obs.points, 3, 3, dtype=r.dtype).index_add_(
+        0, obs.p, J_point.transpose(1, 2) @ wJ_point
+    )
+    g_p = torch.zeros(obs.points, 3, dtype=r.dtype).index_add_(
+        0, obs.p, -(wJ_point.transpose(1, 2) @ r[:, :, None])[:, :, 0]
+    )
+    H_cp = J_pose.transpose(1, 2) @ wJ_point  # (n, 6, 3)
+    H_cc = torch.zeros(m, m, 6, 6, dtype=r.dtype)
+    H_cc.index_put_(
+        (col[free], col[free]),
+        (J_pose.transpose(1, 2) @ (w[:, None, None] * J_pose))[free],
+        accumulate=True,
+    )
+    g_c = torch.zeros(m, 6, dtype=r.dtype).index_add_(
+        0, col[free], -((w[:, None, None] * J_pose).transpose(1, 2) @ r[:, :, None])[free, :, 0]
+    )
+    return H_pp, g_p, H_cp, H_cc, g_c
+
+
+def _reduced(
+    H_cc: torch.Tensor,
+    H_cp: torch.Tensor,
+    H_pp_inv: torch.Tensor,
+    p: torch.Tensor,
+    col: torch.Tensor,
+    ii: torch.Tensor,
+    jj: torch.Tensor,
+) -> torch.Tensor:
+    """The reduced camera system `(6 m, 6 m)`: the pose blocks `H_cc` with the points
+    eliminated (inverse point blocks `H_pp_inv`; `ii`, `jj` from `_schur_pairs`)."""
+    m = len(H_cc)
+    S = H_cc.clone()
+    S.index_put_(
+        (col[ii], col[jj]),
+        -(H_cp[ii] @ H_pp_inv[p[ii]] @ H_cp[jj].transpose(1, 2)),
+        accumulate=True,
+    )
+    return S.transpose(1, 2).reshape(6 * m, 6 * m)
+
+
 def bundle_adjust(
     T_cw: torch.Tensor,
     X: torch.Tensor,
@@ -723,40 +808,7 @@ def bundle_adjust(
     for _ in range(iters):
         if use_prior:
             r_prior, J_prior = prior.jacobian(T_cw, ~moves)
-        norm = r.norm(dim=1)
-        w = torch.where(norm <= delta, torch.ones_like(norm), delta / norm.clamp_min(1e-12))
-        x, y, z = c.unbind(1)
-        zero = torch.zeros_like(z)
-        fx, fy = float(K[0, 0]), float(K[1, 1])
-        dproj = (
-            torch.stack(
-                [
-                    torch.stack([fx / z, zero, -fx * x / z**2], 1),
-                    torch.stack([zero, fy / z, -fy * y / z**2], 1),
-                ],
-                1,
-            )
-            / obs.sigma[:, None, None]
-        )
-        J_pose = torch.cat([dproj, -dproj @ pose.hat(c)], 2)  # (n, 2, 6): left (v, w)
-        J_point = dproj @ T_cw[obs.k, :3, :3]  # (n, 2, 3)
-        wJ_point = w[:, None, None] * J_point
-        H_pp = torch.zeros(obs.points, 3, 3, dtype=X.dtype).index_add_(
-            0, obs.p, J_point.transpose(1, 2) @ wJ_point
-        )
-        g_p = torch.zeros(obs.points, 3, dtype=X.dtype).index_add_(
-            0, obs.p, -(wJ_point.transpose(1, 2) @ r[:, :, None])[:, :, 0]
-        )
-        H_cp = J_pose.transpose(1, 2) @ wJ_point  # (n, 6, 3)
-        H_cc = torch.zeros(m, m, 6, 6, dtype=X.dtype)
-        H_cc.index_put_(
-            (col[free], col[free]),
-            (J_pose.transpose(1, 2) @ (w[:, None, None] * J_pose))[free],
-            accumulate=True,
-        )
-        g_c = torch.zeros(m, 6, dtype=X.dtype).index_add_(
-            0, col[free], -((w[:, None, None] * J_pose).transpose(1, 2) @ r[:, :, None])[free, :, 0]
-        )
+        H_pp, g_p, H_cp, H_cc, g_c = _normal_equations(T_cw, K, obs, r, c, free, col, m, delta)
         diagonal = H_cc.diagonal(0, 2, 3).diagonal(0, 0, 1).T.reshape(-1)
         if use_prior:
             diagonal = diagonal + (J_prior**2).sum(0)
@@ -764,18 +816,12 @@ def bundle_adjust(
             H_pp_inv = torch.linalg.inv(
                 H_pp + lam * H_pp.diagonal(0, 1, 2).diag_embed() + 1e-9 * torch.eye(3)
             )
-            S = H_cc.clone()
-            S.index_put_(
-                (col[ii], col[jj]),
-                -(H_cp[ii] @ H_pp_inv[obs.p[ii]] @ H_cp[jj].transpose(1, 2)),
-                accumulate=True,
-            )
+            S = _reduced(H_cc, H_cp, H_pp_inv, obs.p, col, ii, jj)
             g = g_c.index_add(
                 0,
                 col[free],
                 -(H_cp[free] @ (H_pp_inv[obs.p[free]] @ g_p[obs.p[free], :, None]))[:, :, 0],
             ).reshape(-1)
-            S = S.transpose(1, 2).reshape(6 * m, 6 * m)
             if use_prior:
                 S = S + J_prior.T @ J_prior
                 g = g - J_prior.T @ r_prior
@@ -826,9 +872,19 @@ class Prior:
     residuals: Callable[[torch.Tensor], torch.Tensor]
     first: torch.Tensor
     reach: int
+    group: torch.Tensor | None = None
+    """Each residual's kind (`odometry_prior`'s: 0 turns, 1 directions, 2 lengths; -1 none),
+    the variance components `variance_factors` estimates."""
 
     def __call__(self, T_cw: torch.Tensor) -> torch.Tensor:
         return self.residuals(T_cw)
+
+    def weighed(self, factors: torch.Tensor) -> Prior:
+        """The same prior with each group's variance multiplied by its `factors[group]`
+        (its residuals divided by the root; group -1 as it is)."""
+        scale = torch.cat([factors, factors.new_ones(1)])[self.group].rsqrt()
+        base = self.residuals
+        return dataclasses.replace(self, residuals=lambda T_cw: base(T_cw) * scale)
 
     def jacobian(
         self, T_cw: torch.Tensor, fixed: int | torch.Tensor
@@ -886,6 +942,13 @@ def odometry_prior(
     size = rel[:, :3, 3].norm(dim=1, keepdim=True)
     median = size.median().clamp_min(1e-12)
     heading = rel[:, :3, 3] / size.clamp_min(1e-12)
+    # The difference of unit vectors in the tracked direction's own axes: its two
+    # components across it (the direction's two degrees of freedom) and the one along it,
+    # of second order but for a step turned about (which it holds; `Prior.group` -1: not a
+    # variance component of its own).
+    least = torch.nn.functional.one_hot(heading.abs().argmin(1), 3).to(T_wc.dtype)
+    across = torch.nn.functional.normalize(torch.linalg.cross(heading, least), dim=1)
+    axes = torch.stack([across, torch.linalg.cross(heading, across), heading], 1)
     weight = size / median / direction
     soft = 0.25 * median
 
@@ -915,16 +978,21 @@ def odometry_prior(
         moved = step[:, :3, 3].norm(dim=1, keepdim=True)
         t = step[:, :3, 3] / moved.clamp_min(1e-12)
         turn = turn / math.radians(turn_deg) * step_weight[:, None]
-        parts = [turn.ravel(), ((t - heading) * weight).ravel()]
+        direction = (axes @ (t - heading)[:, :, None])[:, :, 0] * weight
+        parts = [turn.ravel(), direction[:, :2].ravel(), direction[:, 2]]
         if lengths:
             parts.append((log_ratios(moved.ravel()) - ratios) * ratio_weight)
         return torch.cat(parts)
 
     steps = torch.arange(len(size))
-    first = torch.cat([steps.repeat_interleave(3), steps.repeat_interleave(3)])
+    first = torch.cat([steps.repeat_interleave(3), steps.repeat_interleave(2), steps])
+    group = torch.cat(
+        [torch.zeros(3 * len(size)), torch.ones(2 * len(size)), -torch.ones(len(size))]
+    ).long()
     if lengths:
         first = torch.cat([first, steps[:-1]])
-    return Prior(residuals, first, 3 if lengths else 2)
+        group = torch.cat([group, torch.full((len(size) - 1,), 2)])
+    return Prior(residuals, first, 3 if lengths else 2, group)
 
 
 def prior_for(
@@ -1119,6 +1187,65 @@ class Adjusted:
     """Observations that guided matching added (`adjust_tracks`)."""
     held: int = 0
     """The first of the two consecutive poses held (`adjust`'s `gauge`), in path order."""
+    factors: tuple[float, ...] = ()
+    """With `adjust`'s `weigh`: each prior group's variance factor over all rounds (what
+    its standard errors were multiplied by, squared; 1 for the groups not `WEIGHED`)."""
+    reprojection: float = 0.0
+    """With `weigh`: the reprojection errors' standard error at the last round (pixels of
+    their levels, per coordinate), what the factors are relative to."""
+
+
+WEIGHED = ("turns",)
+"""The prior's groups (`Prior.group`: turns, directions, lengths) that `adjust`'s `weigh`
+weighs again: the turns. Weighed as well, the directions (x 9-19 on their standard error)
+take room3 from 1.81 to 1.26 cm and room5 from 4.86 to 1.57, but room0 from 0.94 to 1.05
+and 7-Scenes from 4.47 to 4.70; the turns alone gain on all four (Intel, 3 seeds;
+docs/results.md, session 63). The factors are relative to the features, not the truth's:
+on room0 the weighed turns allow 0.10-0.15 degrees per axis, about twice the turn errors
+the tracked steps make against the truth (median angle 0.09-0.11 degrees); the features'
+errors are not independent, so their reprojection errors understate them."""
+
+
+def variance_factors(
+    T_cw: torch.Tensor,
+    X: torch.Tensor,
+    K: torch.Tensor,
+    obs: Observations,
+    fixed: int | torch.Tensor,
+    prior: Prior,
+    delta: float = 1.5,
+) -> tuple[torch.Tensor, float]:
+    """Variance component estimation (Foerstner's) at an adjustment's end: by how much each
+    of the prior's groups (`Prior.group`) is held too tightly, relative to the reprojection
+    errors, as the factor on its variance; and the reprojection errors' variance (px^2 of
+    their levels, per coordinate). Each group's whitened square sum over its redundancy (its
+    rows less their share in fixing the poses, from the reduced camera system) against the
+    observations' Huber-weighted square sum over theirs (their rows less the unknowns the
+    prior does not fix). Rows that no moving pose enters are left out; a group with none
+    gets 1."""
+    moves, column = moving(len(T_cw), fixed)
+    m = int(moves.sum())
+    free, col = moves[obs.k], column[obs.k]
+    ii, jj = _schur_pairs(obs, free)
+    r, c = reprojection(T_cw, X, K, obs)
+    H_pp, _, H_cp, H_cc, _ = _normal_equations(T_cw, K, obs, r, c, free, col, m, delta)
+    H_pp_inv = torch.linalg.inv(H_pp + 1e-9 * torch.eye(3))
+    r_prior, J_prior = prior.jacobian(T_cw, ~moves)
+    S = _reduced(H_cc, H_cp, H_pp_inv, obs.p, col, ii, jj) + J_prior.T @ J_prior
+    share = (J_prior * torch.linalg.solve(S, J_prior.T).T).sum(1)
+    norm = r.norm(dim=1)
+    huber = torch.where(norm <= delta, norm**2, delta * norm)
+    redundancy = 2 * len(obs.k) - 6 * m - 3 * obs.points + float(share.sum())
+    observed = float(huber.sum()) / max(redundancy, 1.0)
+    group = prior.group if prior.group is not None else torch.zeros(len(r_prior), dtype=torch.long)
+    used = (J_prior.abs().sum(1) > 0) & (group >= 0)
+    factors = torch.ones(int(group.max()) + 1, dtype=T_cw.dtype)
+    for g in range(len(factors)):
+        rows = used & (group == g)
+        if bool(rows.any()):
+            own = float((r_prior[rows] ** 2).sum()) / float((1 - share[rows]).sum().clamp_min(1e-9))
+            factors[g] = own / observed
+    return factors, observed
 
 
 def adjust(
@@ -1131,6 +1258,7 @@ def adjust(
     more: Callable[[torch.Tensor], Observations] | None = None,
     gauge: Literal["first", "linked"] = "first",
     free: torch.Tensor | None = None,
+    weigh: int = 0,
 ) -> Adjusted:
     """Poses `T_wc` (float64, path order) adjusted on `obs`, two consecutive poses held
     (`gauge`: the first two, or the pair sharing the most points, not across a step `free`
@@ -1147,10 +1275,27 @@ def adjust(
     if more is not None:
         obs = more(T_first)
     tight = judged(T_first, K, obs, outlier)
-    X = triangulate(T_first, K, tight)
-    T_ba, _, cost = bundle_adjust(T_first, X, K, tight, held, iters - iters // 2, prior=prior)
+    X_first = triangulate(T_first, K, tight)
+    T_ba, X, cost = bundle_adjust(T_first, X_first, K, tight, held, iters - iters // 2, prior=prior)
+    total, observed = torch.ones(0, dtype=T_wc.dtype), 0.0
+    for _ in range(weigh if prior is not None and prior.group is not None else 0):
+        factors, observed = variance_factors(T_ba, X, K, tight, held, prior)
+        factors[len(WEIGHED) :] = 1  # the groups after the turns keep their standard errors
+        total = factors * (total if len(total) else 1)
+        prior = prior.weighed(factors)
+        T_ba, X, cost = bundle_adjust(
+            T_first, X_first, K, tight, held, iters - iters // 2, prior=prior
+        )
     first = int(torch.nonzero(held)[0])
-    return Adjusted(pose.invert(T_ba), tight.points, len(tight.k), cost, held=first)
+    return Adjusted(
+        pose.invert(T_ba),
+        tight.points,
+        len(tight.k),
+        cost,
+        held=first,
+        factors=tuple(total.tolist()),
+        reprojection=math.sqrt(observed),
+    )
 
 
 def held_pair(
@@ -1224,7 +1369,9 @@ def adjust_tracks(
     elsewhere (room0 seed 1: 1.25 -> 2.52 cm with no new observation; docs/results.md)."""
     obs = observed(tracks, flow, indices, cfg)
     if not cfg.guided:
-        return adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, gauge=cfg.gauge, free=free)
+        return adjust(
+            T_wc, K, obs, cfg.outlier, cfg.iters, prior, gauge=cfg.gauge, free=free, weigh=cfg.weigh
+        )
     linked = 0
 
     def guided(T_cw: torch.Tensor) -> Observations:
@@ -1232,5 +1379,5 @@ def adjust_tracks(
         linked = tracks.guide(indices, T_cw, cfg.views, cfg.outlier)
         return observed(tracks, flow, indices, cfg)
 
-    result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided, cfg.gauge, free)
+    result = adjust(T_wc, K, obs, cfg.outlier, cfg.iters, prior, guided, cfg.gauge, free, cfg.weigh)
     return dataclasses.replace(result, guided=linked)

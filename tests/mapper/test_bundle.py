@@ -1,5 +1,7 @@
 """Feature bundle adjustment of the keyframes: tracks, triangulation, the solver, the prior."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -33,6 +35,7 @@ from dimslam.mapper.bundle import (
     slid_start,
     slides,
     triangulate,
+    variance_factors,
 )
 
 K = torch.tensor([[260.0, 0, 160], [0, 260.0, 120], [0, 0, 1]], dtype=torch.float64)
@@ -225,6 +228,68 @@ def test_length_linked_holds_the_ratios_loosely_where_features_link_the_steps():
     assert torch.allclose(by_config(T_cw), held(T_cw))
     everywhere = prior_for(T_wc, obs, BundleConfig(linked=0, length_linked=0.2))
     assert torch.allclose(everywhere(T_cw), held(T_cw))  # linked 0: no step held tighter
+
+
+def _noisy_steps(T_wc, turn_deg, move, seed=3):
+    """`T_wc`'s path with each step's turn off by `turn_deg` and its translation by `move`
+    (standard errors per axis): a tracker's odometry."""
+    g = torch.Generator().manual_seed(seed)
+    tracked = T_wc.clone()
+    for k in range(1, len(T_wc)):
+        noise = torch.cat(
+            [
+                move * torch.randn(3, generator=g, dtype=torch.float64),
+                math.radians(turn_deg) * torch.randn(3, generator=g, dtype=torch.float64),
+            ]
+        )
+        step = pose.invert(T_wc[k - 1]) @ T_wc[k]
+        tracked[k] = tracked[k - 1] @ step @ pose.exp_se3(noise)
+    return tracked
+
+
+def test_weighing_finds_how_much_the_prior_holds_the_turns_too_tightly():
+    """Features with 0.5 px of noise, tracked steps whose turns are 0.3 degrees off and
+    whose directions 0.025-0.03 (translations of 3 mm on steps of 10-12 cm), a prior that
+    says 0.05 degrees and 0.02: relative to the reprojection errors (0.5^2 for a pixel's
+    weight of 1) the turns' variance is 36 / 0.25 = 144 times what the prior says, the
+    directions' 6-9 times (19 steps: a sample's variance is within a third of it). The
+    estimate finds both; the rounds of `weigh` weigh the turns again (`WEIGHED`), and the
+    poses they end on turn between keyframes nearer the truth than those the tight prior
+    holds."""
+    T_wc, _, obs = _scene(cameras=20, points=300)
+    noise = torch.randn(obs.uv.shape, generator=torch.Generator().manual_seed(2))
+    obs.uv = obs.uv + 0.5 * noise.double()
+    tracked = _noisy_steps(T_wc, 0.3, 0.003)
+    prior = odometry_prior(tracked, 0.05, 0.02)
+    held = adjust(tracked, K, obs, 3.0, 30, prior)
+    assert held.factors == ()
+    T_cw, gauge = pose.invert(held.T_wc), held_pair(obs, 20, "first")
+    X = triangulate(T_cw, K, obs)
+    _, X, _ = bundle_adjust(T_cw, X, K, obs, len(T_cw), 10)  # the points at the poses
+    factors, observed = variance_factors(T_cw, X, K, obs, gauge, prior)
+    assert 0.2 < observed < 0.3  # 0.5 px of noise per coordinate
+    assert factors[0] > 20 and factors[1] > 3  # both held too tightly
+
+    weighed = adjust(tracked, K, obs, 3.0, 30, prior, weigh=3)
+    turns, directions = weighed.factors
+    assert 90 < turns < 200 and directions == 1
+    assert 0.45 < weighed.reprojection < 0.55
+
+    def turn_errors(T):
+        steps = pose.compose(pose.invert(T[:-1]), T[1:])
+        truth = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
+        rotation = truth[:, :3, :3].transpose(1, 2) @ steps[:, :3, :3]
+        return pose.log_so3(rotation).norm(dim=1).median()
+
+    assert float(turn_errors(weighed.T_wc)) < 0.5 * float(turn_errors(held.T_wc))
+    # Once weighed, a further estimate finds the turns about right.
+    T_cw = pose.invert(weighed.T_wc)
+    X = triangulate(T_cw, K, obs)
+    _, X, _ = bundle_adjust(T_cw, X, K, obs, len(T_cw), 10)
+    again, _ = variance_factors(
+        T_cw, X, K, obs, gauge, prior.weighed(torch.tensor(weighed.factors))
+    )
+    assert 0.7 < float(again[0]) < 1.3
 
 
 def test_a_free_step_is_not_held_by_the_prior():
