@@ -1195,15 +1195,17 @@ class Adjusted:
     their levels, per coordinate), what the factors are relative to."""
 
 
+PRIOR_GROUPS = ("turns", "directions", "lengths")
+"""`odometry_prior`'s groups of residuals, by their `Prior.group`."""
 WEIGHED = ("turns",)
-"""The prior's groups (`Prior.group`: turns, directions, lengths) that `adjust`'s `weigh`
-weighs again: the turns. Weighed as well, the directions (x 9-19 on their standard error)
-take room3 from 1.81 to 1.26 cm and room5 from 4.86 to 1.57, but room0 from 0.94 to 1.05
-and 7-Scenes from 4.47 to 4.70; the turns alone gain on all four (Intel, 3 seeds;
-docs/results.md, session 63). The factors are relative to the features, not the truth's:
-on room0 the weighed turns allow 0.10-0.15 degrees per axis, about twice the turn errors
-the tracked steps make against the truth (median angle 0.09-0.11 degrees); the features'
-errors are not independent, so their reprojection errors understate them."""
+"""The prior's groups (`PRIOR_GROUPS`) that `adjust`'s `weigh` weighs again: the turns.
+Weighed as well, the directions (x 9-19 on their standard error) take room3 from 1.81 to
+1.26 cm and room5 from 4.86 to 1.57, but room0 from 0.94 to 1.05 and 7-Scenes from 4.47 to
+4.70; the turns alone gain on all four (Intel, 3 seeds; docs/results.md, session 63). The
+factors are relative to the features, not the truth's: on room0 the weighed turns allow
+0.10-0.15 degrees per axis, about twice the turn errors the tracked steps make against the
+truth (median angle 0.09-0.11 degrees); the features' errors are not independent, so
+their reprojection errors understate them."""
 
 
 def variance_factors(
@@ -1277,11 +1279,12 @@ def adjust(
     tight = judged(T_first, K, obs, outlier)
     X_first = triangulate(T_first, K, tight)
     T_ba, X, cost = bundle_adjust(T_first, X_first, K, tight, held, iters - iters // 2, prior=prior)
-    total, observed = torch.ones(0, dtype=T_wc.dtype), 0.0
+    total, observed = None, 0.0
     for _ in range(weigh if prior is not None and prior.group is not None else 0):
         factors, observed = variance_factors(T_ba, X, K, tight, held, prior)
-        factors[len(WEIGHED) :] = 1  # the groups after the turns keep their standard errors
-        total = factors * (total if len(total) else 1)
+        kept = [name not in WEIGHED for name in PRIOR_GROUPS[: len(factors)]]
+        factors[torch.tensor(kept)] = 1  # their standard errors as configured
+        total = factors if total is None else total * factors
         prior = prior.weighed(factors)
         T_ba, X, cost = bundle_adjust(
             T_first, X_first, K, tight, held, iters - iters // 2, prior=prior
@@ -1293,7 +1296,7 @@ def adjust(
         len(tight.k),
         cost,
         held=first,
-        factors=tuple(total.tolist()),
+        factors=() if total is None else tuple(total.tolist()),
         reprojection=math.sqrt(observed),
     )
 
