@@ -268,7 +268,7 @@ def main() -> None:
     p.add_argument(
         "--weigh",
         type=int,
-        default=0,
+        default=defaults.weigh,
         help="rounds of variance component estimation of the prior's turns against the "
         "reprojection errors, each re-solving the second pass (`bundle.weigh`)",
     )
@@ -384,8 +384,7 @@ def main() -> None:
             if args.guided:
                 kept += f" ({result.guided} by guided matching)"
             if result.factors:
-                turns = result.factors[0] ** 0.5
-                degrees = turn_deg * turns * result.reprojection
+                turns, degrees = result.turns(turn_deg)
                 kept += (
                     f"; the prior's turns weighed x {turns:.2f} ({degrees:.2f} degrees for "
                     f"reprojection errors of {result.reprojection:.2f} px)"

@@ -453,8 +453,7 @@ class BackEnd:
             log.info(
                 "the prior's turns weighed by the residuals: x %.2f (%.2f degrees; the "
                 "features reproject within %.2f px)",
-                math.sqrt(result.factors[0]),
-                cfg.turn_deg * math.sqrt(result.factors[0]) * result.reprojection,
+                *result.turns(cfg.turn_deg),
                 result.reprojection,
             )
         if cfg.refit_iters > 0:

@@ -1194,6 +1194,13 @@ class Adjusted:
     """With `weigh`: the reprojection errors' standard error at the last round (pixels of
     their levels, per coordinate), what the factors are relative to."""
 
+    def turns(self, turn_deg: float) -> tuple[float, float]:
+        """With `weigh`: what the turns' standard error was multiplied by, and the turn
+        error (degrees per axis) that it allows for these reprojection errors, from the
+        configured `turn_deg`."""
+        root = math.sqrt(self.factors[0])
+        return root, turn_deg * root * self.reprojection
+
 
 PRIOR_GROUPS = ("turns", "directions", "lengths")
 """`odometry_prior`'s groups of residuals, by their `Prior.group`."""
