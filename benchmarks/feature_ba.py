@@ -272,6 +272,12 @@ def main() -> None:
         help="rounds of variance component estimation of the prior's turns against the "
         "reprojection errors, each re-solving the second pass (`bundle.weigh`)",
     )
+    p.add_argument(
+        "--weigh-steps",
+        action="store_true",
+        help="with --weigh: the directions weighed with the turns, one variance component "
+        "(`bundle.weigh_steps`)",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -316,6 +322,7 @@ def main() -> None:
         flow_near=args.flow_near,
         gauge=args.gauge,
         weigh=args.weigh,
+        weigh_steps=args.weigh_steps,
     )
     unjudged = observed(tracks, flow, indices, config)
     gt = np.stack([truth[k] for k in range(n)])
@@ -386,7 +393,8 @@ def main() -> None:
             if result.factors:
                 turns, degrees = result.turns(turn_deg)
                 kept += (
-                    f"; the prior's turns weighed x {turns:.2f} ({degrees:.2f} degrees for "
+                    f"; the prior's turns{' and directions' if args.weigh_steps else ''}"
+                    f" weighed x {turns:.2f} ({degrees:.2f} degrees for "
                     f"reprojection errors of {result.reprojection:.2f} px)"
                 )
         else:

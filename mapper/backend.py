@@ -451,8 +451,9 @@ class BackEnd:
         )
         if result.factors:
             log.info(
-                "the prior's turns weighed by the residuals: x %.2f (%.2f degrees; the "
+                "the prior's turns%s weighed by the residuals: x %.2f (%.2f degrees; the "
                 "features reproject within %.2f px)",
+                " and directions" if cfg.weigh_steps else "",
                 *result.turns(cfg.turn_deg),
                 result.reprojection,
             )

@@ -205,6 +205,13 @@ class BundleConfig:
         "for their redundancy, from the reprojection errors', and the second pass solved "
         "again (0: `turn_deg` as configured; `WEIGHED` says why the turns alone).",
     )
+    weigh_steps: bool = option(
+        False,
+        "With `weigh`: each step's direction weighed with its turn, as one variance "
+        "component (the tracked step's: one solve gives both), rather than held as "
+        "configured (`direction`). Intel, 3 seeds: room5 and room3 gain, 7-Scenes loses "
+        "(docs/results.md, session 64); off.",
+    )
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
     )
@@ -921,6 +928,7 @@ def odometry_prior(
     full: int = 1,
     free: torch.Tensor | None = None,
     length_linked: float = 0.0,
+    pooled: bool = False,
 ) -> Prior:
     """Whitened residuals (of world-to-camera poses) that keep each step between
     consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
@@ -937,7 +945,10 @@ def odometry_prior(
     the linked ones too.
 
     Steps `free` (`(n - 1,)` bool, from `slid_start`) are not held at all: the tracked
-    motion there is what the adjustment is to undo."""
+    motion there is what the adjustment is to undo.
+
+    With `pooled`, the directions are of the turns' variance component (`Prior.group` 0):
+    what `adjust`'s `weigh` weighs again, the step as one measurement."""
     rel = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
     size = rel[:, :3, 3].norm(dim=1, keepdim=True)
     median = size.median().clamp_min(1e-12)
@@ -987,7 +998,11 @@ def odometry_prior(
     steps = torch.arange(len(size))
     first = torch.cat([steps.repeat_interleave(3), steps.repeat_interleave(2), steps])
     group = torch.cat(
-        [torch.zeros(3 * len(size)), torch.ones(2 * len(size)), -torch.ones(len(size))]
+        [
+            torch.zeros(3 * len(size)),
+            torch.full((2 * len(size),), 0 if pooled else 1),
+            -torch.ones(len(size)),
+        ]
     ).long()
     if lengths:
         first = torch.cat([first, steps[:-1]])
@@ -1002,7 +1017,12 @@ def prior_for(
     on the steps `free`."""
     if cfg.linked == 0:
         return odometry_prior(
-            T_wc, cfg.turn_deg, cfg.direction, free=free, length_linked=cfg.length_linked
+            T_wc,
+            cfg.turn_deg,
+            cfg.direction,
+            free=free,
+            length_linked=cfg.length_linked,
+            pooled=cfg.weigh_steps,
         )
     shared = links(obs, len(T_wc))
     return odometry_prior(
@@ -1014,6 +1034,7 @@ def prior_for(
         cfg.linked,
         free=free,
         length_linked=cfg.length_linked,
+        pooled=cfg.weigh_steps,
     )
 
 

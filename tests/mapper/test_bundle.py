@@ -247,6 +247,26 @@ def _noisy_steps(T_wc, turn_deg, move, seed=3):
     return tracked
 
 
+def _weighing_case():
+    """A path of 20 keyframes, its features with 0.5 px of noise, and tracked steps whose
+    turns are 0.3 degrees off and whose translations 3 mm."""
+    T_wc, _, obs = _scene(cameras=20, points=300)
+    noise = torch.randn(obs.uv.shape, generator=torch.Generator().manual_seed(2))
+    obs.uv = obs.uv + 0.5 * noise.double()
+    return T_wc, obs, _noisy_steps(T_wc, 0.3, 0.003)
+
+
+def _step_errors(T_wc, truth):
+    """The median turn (radians) and direction (unit vectors' difference) errors of the
+    steps of `T_wc` against those of `truth`."""
+    steps = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
+    true = pose.compose(pose.invert(truth[:-1]), truth[1:])
+    turn = pose.log_so3(true[:, :3, :3].transpose(1, 2) @ steps[:, :3, :3]).norm(dim=1)
+    unit = torch.nn.functional.normalize
+    direction = (unit(steps[:, :3, 3], dim=1) - unit(true[:, :3, 3], dim=1)).norm(dim=1)
+    return float(turn.median()), float(direction.median())
+
+
 def test_weighing_finds_how_much_the_prior_holds_the_turns_too_tightly():
     """Features with 0.5 px of noise, tracked steps whose turns are 0.3 degrees off and
     whose directions 0.025-0.03 (translations of 3 mm on steps of 10-12 cm), a prior that
@@ -256,10 +276,7 @@ def test_weighing_finds_how_much_the_prior_holds_the_turns_too_tightly():
     estimate finds both; the rounds of `weigh` weigh the turns again (`WEIGHED`), and the
     poses they end on turn between keyframes nearer the truth than those the tight prior
     holds."""
-    T_wc, _, obs = _scene(cameras=20, points=300)
-    noise = torch.randn(obs.uv.shape, generator=torch.Generator().manual_seed(2))
-    obs.uv = obs.uv + 0.5 * noise.double()
-    tracked = _noisy_steps(T_wc, 0.3, 0.003)
+    T_wc, obs, tracked = _weighing_case()
     prior = odometry_prior(tracked, 0.05, 0.02)
     held = adjust(tracked, K, obs, 3.0, 30, prior)
     assert held.factors == ()
@@ -275,13 +292,7 @@ def test_weighing_finds_how_much_the_prior_holds_the_turns_too_tightly():
     assert 90 < turns < 200 and directions == 1
     assert 0.45 < weighed.reprojection < 0.55
 
-    def turn_errors(T):
-        steps = pose.compose(pose.invert(T[:-1]), T[1:])
-        truth = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
-        rotation = truth[:, :3, :3].transpose(1, 2) @ steps[:, :3, :3]
-        return pose.log_so3(rotation).norm(dim=1).median()
-
-    assert float(turn_errors(weighed.T_wc)) < 0.5 * float(turn_errors(held.T_wc))
+    assert _step_errors(weighed.T_wc, T_wc)[0] < 0.5 * _step_errors(held.T_wc, T_wc)[0]
     # Once weighed, a further estimate finds the turns about right.
     T_cw = pose.invert(weighed.T_wc)
     X = triangulate(T_cw, K, obs)
@@ -290,6 +301,26 @@ def test_weighing_finds_how_much_the_prior_holds_the_turns_too_tightly():
         T_cw, X, K, obs, gauge, prior.weighed(torch.tensor(weighed.factors))
     )
     assert 0.7 < float(again[0]) < 1.3
+
+
+def test_the_directions_weighed_with_the_turns_as_one_step():
+    """Pooled (`bundle.weigh_steps`), a step's turn and direction have one variance factor,
+    between what the turns alone need (about 115 here) and the directions alone (3-20): the
+    directions, held as configured when the turns alone are weighed, then follow the
+    features and end nearer the truth (0.013 against 0.019), the turns as near as alone."""
+    T_wc, obs, tracked = _weighing_case()
+    alone = adjust(tracked, K, obs, 3.0, 30, odometry_prior(tracked, 0.05, 0.02), weigh=3)
+    pooled = odometry_prior(tracked, 0.05, 0.02, pooled=True)
+    assert set(pooled.group.tolist()) == {0, -1}  # no group of directions of their own
+    steps = adjust(tracked, K, obs, 3.0, 30, pooled, weigh=3)
+    (factor,) = steps.factors
+    assert 20 < factor < alone.factors[0]
+    turn, direction = _step_errors(steps.T_wc, T_wc)
+    turn_alone, direction_alone = _step_errors(alone.T_wc, T_wc)
+    assert direction < 0.8 * direction_alone and turn < 1.1 * turn_alone
+    cfg = BundleConfig(weigh=3, weigh_steps=True)
+    _, _, seen = _scene(cameras=20)
+    assert set(prior_for(tracked, seen, cfg).group.tolist()) == {0, 2, -1}  # and lengths
 
 
 def test_a_free_step_is_not_held_by_the_prior():
