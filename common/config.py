@@ -126,6 +126,10 @@ PRESETS: dict[str, SlamConfig] = {
             # errors' (variance component estimation, 3 rounds): Intel, 3 seeds, room0 0.94
             # -> 0.93, room3 1.81 -> 1.79, room5 4.86 -> 4.55, 7-Scenes 4.47 -> 4.33
             # (docs/results.md, session 63).
+            # Each step's direction weighed with its turn, one variance component (the
+            # tracked step as one measurement): AMD, 3 seeds, room0 1.51 -> 0.86, room3
+            # 2.12 -> 1.46, room5 3.97 -> 1.55, 7-Scenes 4.49 -> 4.39 (docs/results.md,
+            # session 64).
             bundle=BundleConfig(
                 enabled=True,
                 flow=300,
@@ -134,6 +138,7 @@ PRESETS: dict[str, SlamConfig] = {
                 gauge="linked",
                 slides=True,
                 weigh=3,
+                weigh_steps=True,
             ),
             width=320,
         ),

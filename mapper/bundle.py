@@ -203,14 +203,16 @@ class BundleConfig:
         "Rounds of variance component estimation (`variance_factors`): after the "
         "adjustment, the prior's turns are weighed again by how far their residuals are, "
         "for their redundancy, from the reprojection errors', and the second pass solved "
-        "again (0: `turn_deg` as configured; `WEIGHED` says why the turns alone).",
+        "again (0: `turn_deg` as configured; `WEIGHED` says why the turns, and "
+        "`weigh_steps` the directions with them).",
     )
     weigh_steps: bool = option(
         False,
         "With `weigh`: each step's direction weighed with its turn, as one variance "
         "component (the tracked step's: one solve gives both), rather than held as "
-        "configured (`direction`). Intel, 3 seeds: room5 and room3 gain, 7-Scenes loses "
-        "(docs/results.md, session 64); off.",
+        "configured (`direction`; on in the cpu preset). AMD, 3 seeds: room0 1.51 -> 0.86 "
+        "cm, room3 2.12 -> 1.46, room5 3.97 -> 1.55, 7-Scenes 4.49 -> 4.39 "
+        "(docs/results.md, session 64).",
     )
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
@@ -1233,7 +1235,10 @@ Weighed as well, the directions (x 9-19 on their standard error) take room3 from
 factors are relative to the features, not the truth's: on room0 the weighed turns allow
 0.10-0.15 degrees per axis, about twice the turn errors the tracked steps make against the
 truth (median angle 0.09-0.11 degrees); the features' errors are not independent, so
-their reprojection errors understate them."""
+their reprojection errors understate them. With `BundleConfig.weigh_steps` the directions
+are of the turns' group (`odometry_prior`'s `pooled`): one factor for the step, whose mean
+gains on all four on the AMD machine (session 64; a factor of their own, on the Intel one,
+cost room0 and 7-Scenes, session 63: not a paired comparison)."""
 
 
 def variance_factors(

@@ -241,7 +241,8 @@ def test_a_slide_the_features_contradict_is_adjusted_from_the_motion_before_it(t
     with caplog.at_level(logging.INFO, logger="dimslam.mapper.backend"):
         repaired = adjusted("true")
     assert "the features contradict the tracked motion" in caplog.text
-    assert "the prior's turns weighed by the residuals" in caplog.text  # the cpu preset's
+    # the cpu preset's: the steps' turns and directions as one variance component
+    assert "the prior's turns and directions weighed by the residuals" in caplog.text
     assert tail_error(repaired) < 0.2 * tail_error(adjusted("false"))
 
 
