@@ -393,9 +393,8 @@ def main() -> None:
             if result.factors:
                 turns, degrees = result.turns(turn_deg)
                 kept += (
-                    f"; the prior's turns{' and directions' if args.weigh_steps else ''}"
-                    f" weighed x {turns:.2f} ({degrees:.2f} degrees for "
-                    f"reprojection errors of {result.reprojection:.2f} px)"
+                    f"; the prior's {config.weighed} weighed x {turns:.2f} ({degrees:.2f} "
+                    f"degrees for reprojection errors of {result.reprojection:.2f} px)"
                 )
         else:
             _, X, points_only = bundle_adjust(T_cw, triangulate(T_cw, K, obs), K, obs, n, 20)

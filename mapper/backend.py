@@ -451,9 +451,9 @@ class BackEnd:
         )
         if result.factors:
             log.info(
-                "the prior's turns%s weighed by the residuals: x %.2f (%.2f degrees; the "
+                "the prior's %s weighed by the residuals: x %.2f (%.2f degrees; the "
                 "features reproject within %.2f px)",
-                " and directions" if cfg.weigh_steps else "",
+                cfg.weighed,
                 *result.turns(cfg.turn_deg),
                 result.reprojection,
             )

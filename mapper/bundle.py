@@ -218,6 +218,11 @@ class BundleConfig:
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
     )
 
+    @property
+    def weighed(self) -> str:
+        """What `weigh` weighs, for the logs: the turns, and the directions with them."""
+        return "turns and directions" if self.weigh_steps else "turns"
+
     def __post_init__(self) -> None:
         if (
             self.features < 8
