@@ -1022,23 +1022,14 @@ def prior_for(
 ) -> Prior:
     """The odometry prior of `cfg` on the tracked keyframe poses `T_wc` seen by `obs`, none
     on the steps `free`."""
-    if cfg.linked == 0:
-        return odometry_prior(
-            T_wc,
-            cfg.turn_deg,
-            cfg.direction,
-            free=free,
-            length_linked=cfg.length_linked,
-            pooled=cfg.weigh_steps,
-        )
-    shared = links(obs, len(T_wc))
+    held = cfg.linked > 0  # 0: every length left to the features
     return odometry_prior(
         T_wc,
         cfg.turn_deg,
         cfg.direction,
-        cfg.length,
-        shared,
-        cfg.linked,
+        cfg.length if held else None,
+        links(obs, len(T_wc)) if held else None,
+        cfg.linked if held else 1,
         free=free,
         length_linked=cfg.length_linked,
         pooled=cfg.weigh_steps,
