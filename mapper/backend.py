@@ -53,7 +53,7 @@ from dimslam.mapper.bundle import (
 from dimslam.mapper.loop import Loop, LoopCloser, map_depth
 from dimslam.mapper.mapper import Mapper, MapRound
 from dimslam.tracker.frontend import MAX_VELOCITY_STEPS, carry_motion
-from dimslam.tracker.tracker import Tracker
+from dimslam.tracker.tracker import Tracker, keyframe_due
 
 if TYPE_CHECKING:  # imported where a mesh is made: trimesh and scipy take 0.5 s to load
     import trimesh
@@ -107,6 +107,10 @@ class BackEnd:
         # where it changes no pose is the run without it (the mapper's draws stay as they were).
         self.refine_generator = torch.Generator(generator.device).manual_seed(
             generator.initial_seed() + 1
+        )
+        # The initialization's keyframes (`mapper.init_keyframes`) too, for the same reason.
+        self.init_generator = torch.Generator(generator.device).manual_seed(
+            generator.initial_seed() + 2
         )
         self.mapper = Mapper(
             cfg.mapper,
@@ -184,6 +188,8 @@ class BackEnd:
                 result.stats.warp,
             )
             window = self.frames
+            if self.cfg.mapper.init_keyframes:
+                self._init_keyframes()
         else:
             window = self.frames[-self.cfg.mapper.every :]
             with self._timed("refine"):
@@ -212,6 +218,26 @@ class BackEnd:
         self.round_seconds.append(time.perf_counter() - started)
         release_images(self.frames, self.cfg.kept_images)
         return result
+
+    def _init_keyframes(self) -> None:
+        """The initialization's frames after frame 0 become keyframes by the tracker's rule
+        (`keyframe_due`) on the new map, each measured from the last one, as if tracked."""
+        last = self.frames[0]
+        for f in self.frames[1:]:
+            if keyframe_due(
+                self.field,
+                f,
+                last,
+                self.camera,
+                self.cfg.tracker,
+                self.cfg.render,
+                self.init_generator,
+            ):
+                f.keyframe, last = True, f
+        log.info(
+            "the initialization's keyframes: frames %s",
+            ", ".join(str(f.index) for f in self.frames if f.keyframe),
+        )
 
     @contextmanager
     def _timed(self, phase: str):

@@ -140,6 +140,12 @@ class MapperConfig:
         "different minima of the window objective (below: the tracked pose stays).",
     )
     init_frames: int = option(13, "Frames collected before initialization (paper: 13).")
+    init_keyframes: bool = option(
+        False,
+        "After the initialization, its frames become keyframes by the tracker's rule on the new "
+        "map (flow and overlap from the last one), not frame 0 alone: the end-of-run adjustment "
+        "then holds the path there at every keyframe, and its frames are carried from a near one.",
+    )
     init_grow_iters: int = option(
         40, "Initialization iterations after each frame joins (frames join one at a time)."
     )

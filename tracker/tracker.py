@@ -358,25 +358,35 @@ class Tracker:
         return 0
 
     def is_keyframe(self, field: FieldFn, frame: FrameState, last_keyframe: FrameState) -> bool:
-        """Whether `frame` becomes a keyframe.
-
-        Either the mean reprojection flow from the last keyframe exceeds `keyframe_flow_px`
-        (paper), or the last keyframe sees less than `keyframe_overlap` of the frame. The second
-        rule keeps a fixed keyframe that overlaps enough to join the tracking window: forward
-        motion loses overlap long before the flow near the image centre reaches the threshold,
-        and a window of tracked frames alone lets errors grow (docs/status.md).
-        """
-        uv, uv_kf, valid = project_into(
-            field,
-            frame,
-            [last_keyframe],
-            self.camera,
-            self.cfg.overlap_pixels,
-            self.render_cfg,
-            self.generator,
+        """Whether `frame` becomes a keyframe (`keyframe_due` on the map)."""
+        return keyframe_due(
+            field, frame, last_keyframe, self.camera, self.cfg, self.render_cfg, self.generator
         )
-        ok = valid[0]
-        if float(ok.float().mean()) < self.cfg.keyframe_overlap:
-            return True
-        flow = (uv_kf[0][ok] - uv[ok]).norm(dim=-1).mean()
-        return float(flow) > self.cfg.keyframe_flow_px
+
+
+def keyframe_due(
+    field: FieldFn,
+    frame: FrameState,
+    last_keyframe: FrameState,
+    camera: Camera,
+    cfg: TrackerConfig,
+    render_cfg: RenderConfig,
+    generator: torch.Generator,
+) -> bool:
+    """Whether `frame` becomes a keyframe, measured on `cfg.overlap_pixels` random pixels of
+    it placed at the map's depth.
+
+    Either the mean reprojection flow from the last keyframe exceeds `keyframe_flow_px`
+    (paper), or the last keyframe sees less than `keyframe_overlap` of the frame. The second
+    rule keeps a fixed keyframe that overlaps enough to join the tracking window: forward
+    motion loses overlap long before the flow near the image centre reaches the threshold,
+    and a window of tracked frames alone lets errors grow (docs/status.md).
+    """
+    uv, uv_kf, valid = project_into(
+        field, frame, [last_keyframe], camera, cfg.overlap_pixels, render_cfg, generator
+    )
+    ok = valid[0]
+    if float(ok.float().mean()) < cfg.keyframe_overlap:
+        return True
+    flow = (uv_kf[0][ok] - uv[ok]).norm(dim=-1).mean()
+    return float(flow) > cfg.keyframe_flow_px

@@ -45,6 +45,26 @@ def test_before_initialization_there_is_no_trajectory_and_no_mesh():
         back.extract_mesh()
 
 
+def test_the_initialization_frames_become_keyframes_by_the_tracker_rule():
+    """With `mapper.init_keyframes`, the initialization's frames become keyframes where the
+    flow from the last one passes `keyframe_flow_px`: a camera sliding 9 cm a frame before a
+    wall 2 m away moves its pixels 2.25 px a frame, 10 px in 4.4 frames; the frames between
+    them anchor to the keyframe before."""
+    settings = {"tracker.keyframe_flow_px": "10", "tracker.keyframe_overlap": "0"}
+    cfg = apply_overrides(PRESETS["tiny"], {"mapper.init_keyframes": "true", **settings})
+    back = BackEnd(cfg, CAM, torch.device("cpu"), torch.Generator())
+    back.mapper.field = wall  # the map the initialization would have made
+    frames = [FrameState(i, i / 30, None, moved(0.09 * i)) for i in range(13)]
+    frames[0].keyframe = True  # as `Mapper.initialize` leaves it
+    back.add(frames)
+    back._init_keyframes()
+    assert [f.index for f in back.keyframes] == [0, 5, 10]
+    back._anchor(frames)
+    assert {i: kf.index for i, (kf, _) in back.anchors.items()} == {
+        i: 5 * (i // 5) for i in range(13) if i % 5
+    }
+
+
 def test_a_loop_correction_moves_keyframes_and_scales_the_frames_anchored_to_them():
     back = BackEnd(PRESETS["tiny"], CAM, torch.device("cpu"), torch.Generator())
     frames = [FrameState(i, i / 30, None, moved(0.1 * i), keyframe=i in (0, 2)) for i in range(4)]
