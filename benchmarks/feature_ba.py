@@ -4,6 +4,7 @@
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
+        [--init-keyframes]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -125,6 +126,25 @@ def carried(frames: Trajectory, keyframes: Trajectory, adjusted: torch.Tensor) -
         rel[:3, 3] *= float(scales[k])
         out.append(T_new[k].numpy() @ rel)
     return np.stack(out)
+
+
+def with_init_keyframes(keyframes: Trajectory, frames: Trajectory) -> Trajectory:
+    """`keyframes` with the frames before the second one (the initialization's) at the run's
+    median keyframe spacing, from the second frame on: as if the initialization had made them
+    keyframes (`--init-keyframes`)."""
+    stamps = np.round(frames.timestamps, 4)
+    at = np.searchsorted(stamps, np.round(keyframes.timestamps, 4))
+    if len(at) < 2 or not np.array_equal(
+        stamps[np.minimum(at, len(stamps) - 1)], np.round(keyframes.timestamps, 4)
+    ):
+        raise SystemExit("--init-keyframes: the keyframes are not all frames of trajectory.txt")
+    gap = max(1, int(np.median(np.diff(at))))
+    extra = np.arange(at[0] + gap, at[1] - gap // 2, gap)
+    order = np.argsort(np.concatenate([at, extra]), kind="stable")
+    return Trajectory(
+        np.concatenate([keyframes.timestamps, frames.timestamps[extra]])[order],
+        np.concatenate([keyframes.poses, frames.poses[extra]])[order],
+    )
 
 
 def in_front(obs: Observations, starts: dict[str, torch.Tensor], K: torch.Tensor) -> Observations:
@@ -278,6 +298,13 @@ def main() -> None:
         help="with --weigh: the directions weighed with the turns, one variance component "
         "(`bundle.weigh_steps`)",
     )
+    p.add_argument(
+        "--init-keyframes",
+        action="store_true",
+        help="also adjust the frames before the run's second keyframe (the initialization's) "
+        "at the run's median keyframe spacing, carrying the frames between from them (what "
+        "mapper.init_keyframes would give the adjustment without changing the run)",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -288,6 +315,9 @@ def main() -> None:
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
+    if args.init_keyframes:
+        keyframes = with_init_keyframes(keyframes, read_tum(args.run / "trajectory.txt"))
+        print(f"keyframes with the initialization's frames: {len(keyframes)}")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
     K = torch.from_numpy(reader.camera.K)
     wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}

@@ -632,3 +632,19 @@ def test_the_benchmark_carries_every_frame_as_the_mapper_does(monkeypatch):
     tracked = np.linalg.inv(every.poses[4]) @ every.poses[5]
     assert np.allclose(offset[:3, 3], tracked[:3, 3] * float(scales[2]))
     assert abs(float(scales[2]) - 1) > 0.01  # a scale that the check can see
+
+
+def test_the_benchmark_adds_the_initialization_frames_at_the_keyframe_spacing(monkeypatch):
+    """`--init-keyframes`: keyframes at frames 0, 13, 15, 17 and 19 (spacing 2) get frames 2,
+    4, 6, 8 and 10 of the initialization, with their tracked poses; frame 12, a frame before
+    the second keyframe, stays out."""
+    fba = benchmark(monkeypatch, "feature_ba")
+    twists = torch.zeros(20, 6, dtype=torch.float64)
+    twists[:, 0] = torch.arange(20) * 0.05
+    every = Trajectory(1 + np.arange(20) / 30, pose.exp_se3(twists).numpy())
+    at = [0, 13, 15, 17, 19]
+    keyframes = Trajectory(every.timestamps[at], every.poses[at])
+    both = fba.with_init_keyframes(keyframes, every)
+    expected = [0, 2, 4, 6, 8, 10, 13, 15, 17, 19]
+    assert np.allclose(both.timestamps, every.timestamps[expected])
+    assert np.allclose(both.poses, every.poses[expected])
