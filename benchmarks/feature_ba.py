@@ -131,13 +131,17 @@ def carried(frames: Trajectory, keyframes: Trajectory, adjusted: torch.Tensor) -
 def with_init_keyframes(keyframes: Trajectory, frames: Trajectory) -> Trajectory:
     """`keyframes` with the frames before the second one (the initialization's) at the run's
     median keyframe spacing, from the second frame on: as if the initialization had made them
-    keyframes (`--init-keyframes`)."""
-    stamps = np.round(frames.timestamps, 4)
-    at = np.searchsorted(stamps, np.round(keyframes.timestamps, 4))
-    if len(at) < 2 or not np.array_equal(
-        stamps[np.minimum(at, len(stamps) - 1)], np.round(keyframes.timestamps, 4)
-    ):
-        raise SystemExit("--init-keyframes: the keyframes are not all frames of trajectory.txt")
+    keyframes (`--init-keyframes`).
+
+    Raises:
+        ValueError: fewer than two keyframes, or one that is not a frame of `frames`.
+    """
+    stamps, wanted = np.round(frames.timestamps, 4), np.round(keyframes.timestamps, 4)
+    at = np.searchsorted(stamps, wanted)
+    if len(at) < 2 or not np.array_equal(stamps[np.minimum(at, len(stamps) - 1)], wanted):
+        raise ValueError(
+            "--init-keyframes: needs two keyframes or more, each a frame of trajectory.txt"
+        )
     gap = max(1, int(np.median(np.diff(at))))
     extra = np.arange(at[0] + gap, at[1] - gap // 2, gap)
     order = np.argsort(np.concatenate([at, extra]), kind="stable")
@@ -302,8 +306,8 @@ def main() -> None:
         "--init-keyframes",
         action="store_true",
         help="also adjust the frames before the run's second keyframe (the initialization's) "
-        "at the run's median keyframe spacing, carrying the frames between from them (what "
-        "mapper.init_keyframes would give the adjustment without changing the run)",
+        "at the run's median keyframe spacing, carrying the frames between from them (the "
+        "adjustment's part of mapper.init_keyframes, at a fixed spacing, the run unchanged)",
     )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
@@ -316,7 +320,10 @@ def main() -> None:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
     if args.init_keyframes:
-        keyframes = with_init_keyframes(keyframes, read_tum(args.run / "trajectory.txt"))
+        try:
+            keyframes = with_init_keyframes(keyframes, read_tum(args.run / "trajectory.txt"))
+        except ValueError as error:
+            p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
     K = torch.from_numpy(reader.camera.K)

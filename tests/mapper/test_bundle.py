@@ -648,3 +648,5 @@ def test_the_benchmark_adds_the_initialization_frames_at_the_keyframe_spacing(mo
     expected = [0, 2, 4, 6, 8, 10, 13, 15, 17, 19]
     assert np.allclose(both.timestamps, every.timestamps[expected])
     assert np.allclose(both.poses, every.poses[expected])
+    with pytest.raises(ValueError, match="each a frame"):
+        fba.with_init_keyframes(Trajectory(np.array([0.5, 1.0]), every.poses[:2]), every)
