@@ -148,6 +148,9 @@ class BackEnd:
             else None
         )
         self.adjusted_at = 0  # keyframes with features at the last adjustment
+        # Frames the adjustment holds besides the keyframes (`bundle.init_frames`): not the
+        # tracker's references nor the mapping rounds' keyframes.
+        self.extra: set[int] = set()
         self.taken = 0  # frames (of `frames`, in order) a round or the finish has anchored
 
     @property
@@ -189,7 +192,10 @@ class BackEnd:
             )
             window = self.frames
             if self.cfg.mapper.init_keyframes:
-                self._init_keyframes()
+                for f in self._init_marked():
+                    f.keyframe = True
+            elif self.tracks is not None and self.cfg.bundle.init_frames:
+                self.extra = {f.index for f in self._init_marked()}
         else:
             window = self.frames[-self.cfg.mapper.every :]
             with self._timed("refine"):
@@ -219,10 +225,11 @@ class BackEnd:
         release_images(self.frames, self.cfg.kept_images)
         return result
 
-    def _init_keyframes(self) -> None:
-        """The initialization's frames after frame 0 become keyframes by the tracker's rule
-        (`keyframe_due`) on the new map, each measured from the last one, as if tracked."""
-        last = self.frames[0]
+    def _init_marked(self) -> list[FrameState]:
+        """The initialization's frames after frame 0 that the tracker's rule
+        (`keyframe_due`) makes keyframes on the new map, each measured from the last one, as
+        if tracked (`mapper.init_keyframes`, `bundle.init_frames`)."""
+        last, marked = self.frames[0], []
         for f in self.frames[1:]:
             if keyframe_due(
                 self.field,
@@ -233,11 +240,13 @@ class BackEnd:
                 self.cfg.render,
                 self.init_generator,
             ):
-                f.keyframe, last = True, f
+                marked.append(f)
+                last = f
         log.info(
-            "the initialization's keyframes: frames %s",
-            ", ".join(str(f.index) for f in self.frames if f.keyframe),
+            "the initialization's frames the tracker's rule marks: frames %s",
+            ", ".join(str(f.index) for f in [self.frames[0], *marked]),
         )
+        return marked
 
     @contextmanager
     def _timed(self, phase: str):
@@ -405,10 +414,11 @@ class BackEnd:
         for f in frames:
             if f.rgb is None:
                 continue
-            grey = grey_image(f.rgb) if f.keyframe or self.flow is not None else None
+            held = f.keyframe or f.index in self.extra
+            grey = grey_image(f.rgb) if held or self.flow is not None else None
             if self.flow is not None:
-                self.flow.add(f.index, grey, f.keyframe)
-            if f.keyframe and f.index > newest:
+                self.flow.add(f.index, grey, held)
+            if held and f.index > newest:
                 self.tracks.add(f.index, grey)
 
     def adjust_keyframes(self) -> None:
@@ -418,14 +428,15 @@ class BackEnd:
         new poses where they moved most."""
         assert self.tracks is not None
         cfg = self.cfg.bundle
-        keyframes = [kf for kf in self.keyframes if kf.index in self.tracks]
+        held = [f for f in self.frames if f.keyframe or f.index in self.extra]
+        keyframes = [kf for kf in held if kf.index in self.tracks]
         if len(keyframes) < 3:
             return
-        if len(keyframes) < cfg.min_described * len(self.keyframes):
+        if len(keyframes) < cfg.min_described * len(held):
             log.info(
                 "no feature bundle adjustment: %d of %d keyframes described (under %.0f %%)",
                 len(keyframes),
-                len(self.keyframes),
+                len(held),
                 100 * cfg.min_described,
             )
             return
@@ -452,8 +463,12 @@ class BackEnd:
         # The adjustment holds only two keyframes, so the path as a whole may come out
         # turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
-        everyone, nodes = self._with_undescribed(keyframes, T_new, scales)
+        everyone, nodes = self._with_undescribed(keyframes, T_new, scales, held)
+        if self.extra:  # the frames after an extra one follow it, then all their keyframe
+            self._anchor(self.frames, held)
         moved = self._move(everyone, nodes)
+        if self.extra:
+            self._anchor(self.frames)
         log.info(
             "feature bundle adjustment of %d keyframes (%d more follow): %d points (of %d "
             "ORB tracks and %d flow tracks), %d observations (%d by guided matching), cost "
@@ -484,14 +499,22 @@ class BackEnd:
                 result.reprojection,
             )
         if cfg.refit_iters > 0:
-            order = sorted(range(len(everyone)), key=lambda k: -moved[k])
+            mapped = [k for k, f in enumerate(everyone) if f.keyframe]  # not the extra ones
+            order = sorted(mapped, key=lambda k: -moved[k])
             anchors = [everyone[k] for k in order[: max(1, cfg.refit_iters // 20)]]
-            self.mapper.post_optimize(everyone, cfg.refit_iters, anchors=anchors)
+            self.mapper.post_optimize(
+                [everyone[k] for k in mapped], cfg.refit_iters, anchors=anchors
+            )
 
     def _with_undescribed(
-        self, described: list[FrameState], T_new: torch.Tensor, scales: torch.Tensor
+        self,
+        described: list[FrameState],
+        T_new: torch.Tensor,
+        scales: torch.Tensor,
+        held: list[FrameState],
     ) -> tuple[list[FrameState], torch.Tensor]:
-        """Every keyframe from the first `described` one on, with its Sim(3) node after the
+        """Every frame of `held` (the keyframes and the `extra` frames, path order) from the
+        first `described` one on, with its Sim(3) node after the
         adjustment moved the described ones to `T_new` (path growing by `scales` about
         each). A mapper behind a live camera describes only its rounds' keyframes; a keyframe
         between two described ones takes the similarity that moved them, interpolated by
@@ -507,7 +530,7 @@ class BackEnd:
         ]
         at = {kf.index: k for k, kf in enumerate(described)}
         everyone, nodes = [], []
-        for kf in self.keyframes:
+        for kf in held:
             k = at.get(kf.index)
             if k is not None:
                 everyone.append(kf)
@@ -531,11 +554,13 @@ class BackEnd:
         self._anchor(self.frames)
         self.taken = len(self.frames)
 
-    def _anchor(self, frames: list[FrameState]) -> None:
-        """Record each non-keyframe's pose relative to the keyframe before it."""
-        keyframes = self.keyframes
+    def _anchor(self, frames: list[FrameState], held: list[FrameState] | None = None) -> None:
+        """Record each non-keyframe's pose relative to the keyframe before it (or to the
+        frame of `held`, path order, before it)."""
+        keyframes = self.keyframes if held is None else held
+        ids = {id(kf) for kf in keyframes}
         for f in frames:
-            if f.keyframe:
+            if id(f) in ids:
                 self.anchors.pop(f.index, None)
                 continue
             before = [kf for kf in keyframes if kf.index <= f.index]

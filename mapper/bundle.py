@@ -145,6 +145,17 @@ class BundleConfig:
         "that the map and the tracker go on from the corrected poses (0: only at the end). "
         "20 took room3 seed 0 from 4.30 to 7.51 cm (docs/results.md).",
     )
+    init_frames: bool = option(
+        False,
+        "Also adjust the initialization's frames that the tracker's rule marks on the new map "
+        "(`keyframe_due`, as `mapper.init_keyframes` would make them keyframes), with the "
+        "frames after each carried from it: the initialization leaves frame 0 its only "
+        "keyframe, so the adjustment would hold the path's first 13 frames (23-29 cm on the "
+        "rooms) at two poses. They are not keyframes: the tracker and the mapping rounds do "
+        "not use them, and the run is the same until its end. AMD, 3 seeds: room0 0.86 -> "
+        "0.77 cm, room3 1.46 -> 1.03, room5 1.55 -> 1.48, 7-Scenes the same (the rule marks "
+        "none there) (on in the cpu preset; docs/results.md, session 66).",
+    )
     iters: int = option(60, "Levenberg-Marquardt iterations (two passes of half).")
     gauge: Literal["first", "linked"] = option(
         "first",

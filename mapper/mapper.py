@@ -146,7 +146,8 @@ class MapperConfig:
         "map (flow and overlap from the last one), not frame 0 alone: the end-of-run adjustment "
         "then holds the path there at every keyframe, and its frames are carried from a near one. "
         "AMD, 3 seeds, whole runs: room0 0.86 -> 0.53 cm, room3 1.46 -> 1.31, room5 1.55 -> "
-        "2.56, 7-Scenes unchanged (docs/results.md, session 65); off.",
+        "2.56, 7-Scenes unchanged (docs/results.md, session 65); off: the same frames in the "
+        "adjustment only, `bundle.init_frames`, are in the cpu preset.",
     )
     init_grow_iters: int = option(
         40, "Initialization iterations after each frame joins (frames join one at a time)."

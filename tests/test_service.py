@@ -180,9 +180,12 @@ def test_the_mappers_end_of_run_bundle_adjustment_reaches_the_trajectory(sequenc
     `--bundle.flow`, every frame the mapper gets feeds the flow's tracks."""
     out = tmp_path / "run"
     args = ["--preset", "tiny", "--mapper.iters", "40", "--no-mesh", "--bundle.enabled", "true"]
-    args += ["--bundle.flow", "100"]
+    args += ["--bundle.flow", "100", "--bundle.init_frames", "true"]
     assert main(["run", str(sequence), "--out", str(out), *args]) == 0
-    adjusted = re.search(r"and (\d+) flow tracks", (out / "mapper.log").read_text())
+    log = (out / "mapper.log").read_text()
+    # `--bundle.init_frames` reaches the mapper (on this scene the rule marks frame 0 alone).
+    assert "the initialization's frames the tracker's rule marks: frames 0" in log
+    adjusted = re.search(r"and (\d+) flow tracks", log)
     assert adjusted is not None and int(adjusted.group(1)) > 10
     final, online = read_tum(out / "trajectory.txt"), read_tum(out / "trajectory_online.txt")
     assert len(final) == len(online) == FRAMES

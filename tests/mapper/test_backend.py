@@ -57,7 +57,8 @@ def test_the_initialization_frames_become_keyframes_by_the_tracker_rule():
     frames = [FrameState(i, i / 30, None, moved(0.09 * i)) for i in range(13)]
     frames[0].keyframe = True  # as `Mapper.initialize` leaves it
     back.add(frames)
-    back._init_keyframes()
+    for f in back._init_marked():
+        f.keyframe = True
     assert [f.index for f in back.keyframes] == [0, 5, 10]
     back._anchor(frames)
     assert {i: kf.index for i, (kf, _) in back.anchors.items()} == {
@@ -213,6 +214,35 @@ def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follo
     back._describe(frames)
     back.adjust_keyframes()
     _assert_one_scale(back, truth, drifted)
+
+
+@pytest.mark.parametrize("extra", [True, False])
+def test_the_initialization_frames_the_rule_marks_join_the_adjustment(tmp_path, extra):
+    """`bundle.init_frames`: frames 3, 6 and 9 of the drifted path, not keyframes (the
+    initialization left frame 0 the only one before 12), join the adjustment, and the frames
+    after each follow it: the first 12 frames come back to the path's one scale. They stay
+    what they were: not keyframes, anchored to keyframe 0 for later corrections. Without
+    them, frames 1-11 are carried rigidly from frame 0 and keep the drift."""
+    back, frames, truth, drifted = _drifted(tmp_path)
+    for f in frames[3:12:3]:
+        f.keyframe = False
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    back.extra = {3, 6, 9} if extra else set()
+    back._describe(frames)
+    back.adjust_keyframes()
+    assert [f.index for f in back.keyframes] == [0, 12, 15, 18, 21]
+    assert {i: kf.index for i, (kf, _) in back.anchors.items() if i < 12} == {
+        i: 0 for i in range(1, 12)
+    }
+    final = torch.from_numpy(back.trajectory().poses).float()
+    steps = (final[3::3, :3, 3] - final[:-3:3, :3, 3]).norm(dim=1)
+    ratio = steps / (truth[3::3, :3, 3] - truth[:-3:3, :3, 3]).norm(dim=1)
+    if extra:
+        assert ratio.max() / ratio.min() < 1.05
+    else:
+        assert ratio[:4].max() / ratio[:4].min() > 1.2  # frames 0-12: the drift kept
 
 
 def test_a_slide_the_features_contradict_is_adjusted_from_the_motion_before_it(tmp_path, caplog):
