@@ -4,7 +4,7 @@
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
-        [--init-keyframes]
+        [--init-keyframes [FRAMES]]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -128,13 +128,17 @@ def carried(frames: Trajectory, keyframes: Trajectory, adjusted: torch.Tensor) -
     return np.stack(out)
 
 
-def with_init_keyframes(keyframes: Trajectory, frames: Trajectory) -> Trajectory:
+def with_init_keyframes(
+    keyframes: Trajectory, frames: Trajectory, chosen: list[int] | None = None
+) -> Trajectory:
     """`keyframes` with the frames before the second one (the initialization's) at the run's
-    median keyframe spacing, from the second frame on: as if the initialization had made them
+    median keyframe spacing, from the second frame on, or the `chosen` ones (rows of
+    `frames`, each before the second keyframe): as if the initialization had made them
     keyframes (`--init-keyframes`).
 
     Raises:
-        ValueError: fewer than two keyframes, or one that is not a frame of `frames`.
+        ValueError: fewer than two keyframes, one that is not a frame of `frames`, or a
+            chosen frame that is not between the first two keyframes.
     """
     stamps, wanted = np.round(frames.timestamps, 4), np.round(keyframes.timestamps, 4)
     at = np.searchsorted(stamps, wanted)
@@ -142,8 +146,16 @@ def with_init_keyframes(keyframes: Trajectory, frames: Trajectory) -> Trajectory
         raise ValueError(
             "--init-keyframes: needs two keyframes or more, each a frame of trajectory.txt"
         )
-    gap = max(1, int(np.median(np.diff(at))))
-    extra = np.arange(at[0] + gap, at[1] - gap // 2, gap)
+    if chosen is None:
+        gap = max(1, int(np.median(np.diff(at))))
+        extra = np.arange(at[0] + gap, at[1] - gap // 2, gap)
+    else:
+        extra = np.unique(np.asarray(chosen, dtype=int))
+        if len(extra) and (extra.min() <= at[0] or extra.max() >= at[1]):
+            raise ValueError(
+                f"--init-keyframes: frames between the run's first two keyframes (rows "
+                f"{at[0]} and {at[1]} of trajectory.txt), got {extra.tolist()}"
+            )
     order = np.argsort(np.concatenate([at, extra]), kind="stable")
     return Trajectory(
         np.concatenate([keyframes.timestamps, frames.timestamps[extra]])[order],
@@ -304,10 +316,14 @@ def main() -> None:
     )
     p.add_argument(
         "--init-keyframes",
-        action="store_true",
-        help="also adjust the frames before the run's second keyframe (the initialization's) "
-        "at the run's median keyframe spacing, carrying the frames between from them (the "
-        "adjustment's part of mapper.init_keyframes, at a fixed spacing, the run unchanged)",
+        nargs="?",
+        const="spacing",
+        metavar="FRAMES",
+        help="also adjust frames before the run's second keyframe (the initialization's), "
+        "carrying the frames between from them, the run unchanged: alone, at the run's "
+        "median keyframe spacing; with FRAMES (e.g. 4,8,12: rows of trajectory.txt, the frame "
+        "numbers of a stride-1 run), those: the mapper's log line 'the initialization's frames "
+        "the tracker's rule marks' names them (bundle.init_frames)",
     )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
@@ -321,7 +337,12 @@ def main() -> None:
     keyframes = read_tum(args.run / "keyframes.txt")
     if args.init_keyframes:
         try:
-            keyframes = with_init_keyframes(keyframes, read_tum(args.run / "trajectory.txt"))
+            chosen = None
+            if args.init_keyframes != "spacing":
+                chosen = [int(k) for k in args.init_keyframes.split(",") if k.strip()]
+            keyframes = with_init_keyframes(
+                keyframes, read_tum(args.run / "trajectory.txt"), chosen
+            )
         except ValueError as error:
             p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")

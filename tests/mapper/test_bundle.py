@@ -650,3 +650,8 @@ def test_the_benchmark_adds_the_initialization_frames_at_the_keyframe_spacing(mo
     assert np.allclose(both.poses, every.poses[expected])
     with pytest.raises(ValueError, match="each a frame"):
         fba.with_init_keyframes(Trajectory(np.array([0.5, 1.0]), every.poses[:2]), every)
+    # `--init-keyframes 4,8,12`: those, as the mapper's rule marked them (`bundle.init_frames`).
+    chosen = fba.with_init_keyframes(keyframes, every, [8, 4, 12])
+    assert np.allclose(chosen.timestamps, every.timestamps[[0, 4, 8, 12, 13, 15, 17, 19]])
+    with pytest.raises(ValueError, match="between the run's first two keyframes"):
+        fba.with_init_keyframes(keyframes, every, [4, 13])
