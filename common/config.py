@@ -130,8 +130,13 @@ PRESETS: dict[str, SlamConfig] = {
             # tracked step as one measurement): AMD, 3 seeds, room0 1.51 -> 0.86, room3
             # 2.12 -> 1.46, room5 3.97 -> 1.55, 7-Scenes 4.49 -> 4.39 (docs/results.md,
             # session 64).
+            # The initialization's frames that the tracker's rule marks join it (frame 0 is
+            # the initialization's only keyframe): AMD, 3 seeds, room0 0.86 -> 0.77, room3
+            # 1.46 -> 1.03, room5 1.55 -> 1.48, 7-Scenes the same (no frame marked)
+            # (docs/results.md, session 66).
             bundle=BundleConfig(
                 enabled=True,
+                init_frames=True,
                 flow=300,
                 flow_realign=True,
                 length_linked=0.2,
