@@ -4,7 +4,7 @@
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
-        [--init-keyframes [FRAMES]]
+        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -128,6 +128,28 @@ def carried(frames: Trajectory, keyframes: Trajectory, adjusted: torch.Tensor) -
     return np.stack(out)
 
 
+def _rows(keyframes: Trajectory, frames: Trajectory, option: str) -> np.ndarray:
+    """The rows of `frames` that `keyframes` are.
+
+    Raises:
+        ValueError: fewer than two keyframes, or one that is not a frame of `frames`.
+    """
+    stamps, wanted = np.round(frames.timestamps, 4), np.round(keyframes.timestamps, 4)
+    at = np.searchsorted(stamps, wanted)
+    if len(at) < 2 or not np.array_equal(stamps[np.minimum(at, len(stamps) - 1)], wanted):
+        raise ValueError(f"{option}: needs two keyframes or more, each a frame of trajectory.txt")
+    return at
+
+
+def _joined(keyframes: Trajectory, frames: Trajectory, at: np.ndarray, extra) -> Trajectory:
+    """`keyframes` (rows `at` of `frames`) with the `extra` rows of `frames`, in path order."""
+    order = np.argsort(np.concatenate([at, extra]), kind="stable")
+    return Trajectory(
+        np.concatenate([keyframes.timestamps, frames.timestamps[extra]])[order],
+        np.concatenate([keyframes.poses, frames.poses[extra]])[order],
+    )
+
+
 def with_init_keyframes(
     keyframes: Trajectory, frames: Trajectory, chosen: list[int] | None = None
 ) -> Trajectory:
@@ -140,12 +162,7 @@ def with_init_keyframes(
         ValueError: fewer than two keyframes, one that is not a frame of `frames`, or a
             chosen frame that is not between the first two keyframes.
     """
-    stamps, wanted = np.round(frames.timestamps, 4), np.round(keyframes.timestamps, 4)
-    at = np.searchsorted(stamps, wanted)
-    if len(at) < 2 or not np.array_equal(stamps[np.minimum(at, len(stamps) - 1)], wanted):
-        raise ValueError(
-            "--init-keyframes: needs two keyframes or more, each a frame of trajectory.txt"
-        )
+    at = _rows(keyframes, frames, "--init-keyframes")
     if chosen is None:
         gap = max(1, int(np.median(np.diff(at))))
         extra = np.arange(at[0] + gap, at[1] - gap // 2, gap)
@@ -156,11 +173,27 @@ def with_init_keyframes(
                 f"--init-keyframes: frames between the run's first two keyframes (rows "
                 f"{at[0]} and {at[1]} of trajectory.txt), got {extra.tolist()}"
             )
-    order = np.argsort(np.concatenate([at, extra]), kind="stable")
-    return Trajectory(
-        np.concatenate([keyframes.timestamps, frames.timestamps[extra]])[order],
-        np.concatenate([keyframes.poses, frames.poses[extra]])[order],
-    )
+    return _joined(keyframes, frames, at, extra)
+
+
+def with_gap_frames(keyframes: Trajectory, frames: Trajectory, factor: float) -> Trajectory:
+    """`keyframes` with frames in every gap between consecutive ones, after the first gap
+    (the initialization's, left to `with_init_keyframes`), of at least `factor` times the
+    run's median keyframe spacing, at that spacing (`--fill-gaps`): the frames a long gap
+    carries rigidly from the keyframe before it, held by the adjustment instead.
+
+    Raises:
+        ValueError: fewer than two keyframes, or one that is not a frame of `frames`.
+    """
+    at = _rows(keyframes, frames, "--fill-gaps")
+    gap = max(1, int(np.median(np.diff(at))))
+    extra = [
+        i
+        for a, b in zip(at[1:-1], at[2:], strict=True)
+        if b - a >= factor * gap
+        for i in range(a + gap, b - gap // 2, gap)
+    ]
+    return _joined(keyframes, frames, at, np.asarray(extra, dtype=int))
 
 
 def in_front(obs: Observations, starts: dict[str, torch.Tensor], K: torch.Tensor) -> Observations:
@@ -325,6 +358,14 @@ def main() -> None:
         "numbers of a stride-1 run), those: the mapper's log line 'the initialization's frames "
         "the tracker's rule marks' names them (bundle.init_frames)",
     )
+    p.add_argument(
+        "--fill-gaps",
+        type=float,
+        metavar="FACTOR",
+        help="also adjust frames in every gap between keyframes after the run's second one, of "
+        "at least FACTOR times the run's median keyframe spacing, at that spacing, carrying "
+        "the frames between from them (the run unchanged)",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -335,6 +376,16 @@ def main() -> None:
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
+    if args.fill_gaps is not None:
+        if args.fill_gaps <= 1:
+            p.error("--fill-gaps must be > 1")
+        try:
+            keyframes = with_gap_frames(
+                keyframes, read_tum(args.run / "trajectory.txt"), args.fill_gaps
+            )
+        except ValueError as error:
+            p.error(str(error))
+        print(f"keyframes with the long gaps' frames: {len(keyframes)}")
     if args.init_keyframes:
         try:
             chosen = None

@@ -655,3 +655,20 @@ def test_the_benchmark_adds_the_initialization_frames_at_the_keyframe_spacing(mo
     assert np.allclose(chosen.timestamps, every.timestamps[[0, 4, 8, 12, 13, 15, 17, 19]])
     with pytest.raises(ValueError, match="between the run's first two keyframes"):
         fba.with_init_keyframes(keyframes, every, [4, 13])
+
+
+def test_the_benchmark_fills_the_long_gaps_between_keyframes(monkeypatch):
+    """`--fill-gaps 3`: keyframes at frames 0, 13, 15, 17, 25, 27, 29 (spacing 2) get frames
+    19, 21 and 23 of the gap of 8 after 17; the initialization's gap (0-13) is left to
+    `--init-keyframes`, the gaps of 2 have none."""
+    fba = benchmark(monkeypatch, "feature_ba")
+    twists = torch.zeros(30, 6, dtype=torch.float64)
+    twists[:, 0] = torch.arange(30) * 0.05
+    every = Trajectory(1 + np.arange(30) / 30, pose.exp_se3(twists).numpy())
+    at = [0, 13, 15, 17, 25, 27, 29]
+    keyframes = Trajectory(every.timestamps[at], every.poses[at])
+    filled = fba.with_gap_frames(keyframes, every, 3)
+    expected = [0, 13, 15, 17, 19, 21, 23, 25, 27, 29]
+    assert np.allclose(filled.timestamps, every.timestamps[expected])
+    assert np.allclose(filled.poses, every.poses[expected])
+    assert len(fba.with_gap_frames(keyframes, every, 5)) == len(at)  # 8 < 5 x 2
