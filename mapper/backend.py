@@ -464,10 +464,10 @@ class BackEnd:
         # turned or scaled about them.
         T_new, scales = brought_back(T_wc, result.T_wc)
         everyone, nodes = self._with_undescribed(keyframes, T_new, scales, held)
-        if self.extra:  # the frames after an extra one follow it, then all their keyframe
+        if self.extra:  # in this move the frames after an extra one follow it
             self._anchor(self.frames, held)
         moved = self._move(everyone, nodes)
-        if self.extra:
+        if self.extra:  # and later corrections move every frame with its keyframe again
             self._anchor(self.frames)
         log.info(
             "feature bundle adjustment of %d keyframes (%d more follow): %d points (of %d "
@@ -514,13 +514,13 @@ class BackEnd:
         held: list[FrameState],
     ) -> tuple[list[FrameState], torch.Tensor]:
         """Every frame of `held` (the keyframes and the `extra` frames, path order) from the
-        first `described` one on, with its Sim(3) node after the
-        adjustment moved the described ones to `T_new` (path growing by `scales` about
-        each). A mapper behind a live camera describes only its rounds' keyframes; a keyframe
-        between two described ones takes the similarity that moved them, interpolated by
-        its place between them (on the Sim(3) geodesic), and one after the last described
-        takes that one's, so that the path stays in one piece. Offline every keyframe is
-        described and this is `described` itself."""
+        first `described` one on, with its Sim(3) node after the adjustment moved the
+        described ones to `T_new` (path growing by `scales` about each). A mapper behind a
+        live camera describes only its rounds' keyframes; a keyframe between two described
+        ones takes the similarity that moved them, interpolated by its place between them
+        (on the Sim(3) geodesic), and one after the last described takes that one's, so that
+        the path stays in one piece. Offline every keyframe is described and this is
+        `described` itself."""
         moves = [
             sim3.compose(
                 sim3.from_pose(T_new[k], scales[k]),
