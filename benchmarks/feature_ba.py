@@ -376,13 +376,13 @@ def main() -> None:
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
+    if args.fill_gaps is not None or args.init_keyframes:
+        every_frame = read_tum(args.run / "trajectory.txt")
     if args.fill_gaps is not None:
         if args.fill_gaps <= 1:
             p.error("--fill-gaps must be > 1")
         try:
-            keyframes = with_gap_frames(
-                keyframes, read_tum(args.run / "trajectory.txt"), args.fill_gaps
-            )
+            keyframes = with_gap_frames(keyframes, every_frame, args.fill_gaps)
         except ValueError as error:
             p.error(str(error))
         print(f"keyframes with the long gaps' frames: {len(keyframes)}")
@@ -390,10 +390,13 @@ def main() -> None:
         try:
             chosen = None
             if args.init_keyframes != "spacing":
-                chosen = [int(k) for k in args.init_keyframes.split(",") if k.strip()]
-            keyframes = with_init_keyframes(
-                keyframes, read_tum(args.run / "trajectory.txt"), chosen
-            )
+                if not all(k.strip().isdigit() for k in args.init_keyframes.split(",")):
+                    raise ValueError(
+                        f"--init-keyframes: frame numbers separated by commas, got "
+                        f"{args.init_keyframes!r}"
+                    )
+                chosen = [int(k) for k in args.init_keyframes.split(",")]
+            keyframes = with_init_keyframes(keyframes, every_frame, chosen)
         except ValueError as error:
             p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")

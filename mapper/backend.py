@@ -108,7 +108,8 @@ class BackEnd:
         self.refine_generator = torch.Generator(generator.device).manual_seed(
             generator.initial_seed() + 1
         )
-        # The initialization's keyframes (`mapper.init_keyframes`) too, for the same reason.
+        # The initialization's marked frames (`mapper.init_keyframes`, `bundle.init_frames`)
+        # too, for the same reason.
         self.init_generator = torch.Generator(generator.device).manual_seed(
             generator.initial_seed() + 2
         )
@@ -405,16 +406,20 @@ class BackEnd:
             self.mapper.post_optimize(self.keyframes)
         return self.tracks is not None or self.cfg.mapper.post_iters > 0
 
+    def _held(self, f: FrameState) -> bool:
+        """Whether the adjustment holds `f`: a keyframe, or an `extra` frame."""
+        return f.keyframe or f.index in self.extra
+
     def _describe(self, frames: list[FrameState]) -> None:
-        """Add the new keyframes among `frames` (path order) to the feature tracks
-        (`bundle.enabled`), and every new frame to the flow's (`bundle.flow`)."""
+        """Add the new keyframes and `extra` frames among `frames` (path order) to the
+        feature tracks (`bundle.enabled`), and every new frame to the flow's (`bundle.flow`)."""
         if self.tracks is None:
             return
         newest = max(self.tracks.keyframes, default=-1)
         for f in frames:
             if f.rgb is None:
                 continue
-            held = f.keyframe or f.index in self.extra
+            held = self._held(f)
             grey = grey_image(f.rgb) if held or self.flow is not None else None
             if self.flow is not None:
                 self.flow.add(f.index, grey, held)
@@ -422,13 +427,13 @@ class BackEnd:
                 self.tracks.add(f.index, grey)
 
     def adjust_keyframes(self) -> None:
-        """Refine every described keyframe's pose by the feature bundle adjustment
-        (`mapper/bundle.py`); the frames anchored to a keyframe follow it, their offsets
+        """Refine every described keyframe's pose (and `extra` frame's) by the feature bundle
+        adjustment (`mapper/bundle.py`); the frames anchored to a keyframe follow it, their offsets
         scaled as the path about it was (`local_scales`), and the map is refitted to the
         new poses where they moved most."""
         assert self.tracks is not None
         cfg = self.cfg.bundle
-        held = [f for f in self.frames if f.keyframe or f.index in self.extra]
+        held = [f for f in self.frames if self._held(f)]
         keyframes = [kf for kf in held if kf.index in self.tracks]
         if len(keyframes) < 3:
             return
