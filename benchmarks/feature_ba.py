@@ -4,7 +4,7 @@
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
-        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR]
+        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR] [--live]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -40,6 +40,11 @@ holds the ratios of the linked steps too, within L (`bundle.length_linked`).
 `--flow N` adds N corners followed by optical flow through every frame of the sequence
 between the first and the last keyframe, observed at the keyframes (`bundle.flow`,
 `mapper.bundle.FlowTracks`), as points of their own beside the ORB tracks.
+
+`--live` does what the mapper does at the end of a run whose rounds were live
+(`bundle.live`): the flow goes from keyframe to keyframe (a live mapper keeps no other
+image), and the `--odometry` prior holds only the steps that fewer than `--linked` points
+link, no length ratio where they do, nothing weighed (`BundleConfig.live_path`).
 
 `--noise PX` replaces every observation by the projection of its point at the true poses
 plus Gaussian noise: the features as an ideal detector would give them, which separates
@@ -366,6 +371,13 @@ def main() -> None:
         "at least FACTOR times the run's median keyframe spacing, at that spacing, carrying "
         "the frames between from them (the run unchanged)",
     )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="what the mapper does at the end of a live run (bundle.live): the flow followed "
+        "from keyframe to keyframe, the tracked steps held only where features do not link "
+        "them (with --odometry), no length ratio held, nothing weighed",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -411,7 +423,8 @@ def main() -> None:
         if k is not None:
             images[k] = grey_image(frame.rgb)
             truth[k], at[k] = frame.T_wc, i
-        if flow is not None and at:
+        # A live mapper keeps the keyframes' images alone: its flow goes keyframe to keyframe.
+        if flow is not None and at and (k is not None or not args.live):
             flow.add(i, images[k] if k is not None else grey_image(frame.rgb), k is not None)
     if len(images) != len(wanted) or any(t is None for t in truth.values()):
         p.error(f"{args.dataset}: {len(images)} of {len(wanted)} keyframes found with ground truth")
@@ -436,6 +449,8 @@ def main() -> None:
         weigh=args.weigh,
         weigh_steps=args.weigh_steps,
     )
+    if args.live:
+        config = config.live_path()
     unjudged = observed(tracks, flow, indices, config)
     gt = np.stack([truth[k] for k in range(n)])
     run = torch.from_numpy(keyframes.poses)

@@ -401,10 +401,30 @@ class BackEnd:
             return False
         self._anchor(self._fresh([]))  # frames kept at a stop without a round
         if self.tracks is not None:
+            if self._live_path():
+                self._describe_left()
             self.adjust_keyframes()
         if self.cfg.mapper.post_iters > 0:
             self.mapper.post_optimize(self.keyframes)
         return self.tracks is not None or self.cfg.mapper.post_iters > 0
+
+    def _live_path(self) -> bool:
+        """Whether the end-of-run adjustment takes the path as live (`bundle.live`): some
+        of its rounds were, and described nothing."""
+        return self.cfg.bundle.live and self.short_rounds > 0
+
+    def _describe_left(self) -> None:
+        """Describe the keyframes that the live rounds left undescribed, from the images
+        the mapper keeps (the keyframes' and the newest frames'): the flow goes from one to
+        the next."""
+        started = time.perf_counter()
+        before = len(self.tracks.keyframes)
+        self._describe(self.frames)
+        log.info(
+            "described %d keyframes the live rounds left (%.1f s)",
+            len(self.tracks.keyframes) - before,
+            time.perf_counter() - started,
+        )
 
     def _held(self, f: FrameState) -> bool:
         """Whether the adjustment holds `f`: a keyframe, or an `extra` frame."""
@@ -432,7 +452,7 @@ class BackEnd:
         scaled as the path about it was (`local_scales`), and the map is refitted to the
         new poses where they moved most."""
         assert self.tracks is not None
-        cfg = self.cfg.bundle
+        cfg = self.cfg.bundle.live_path() if self._live_path() else self.cfg.bundle
         held = [f for f in self.frames if self._held(f)]
         keyframes = [kf for kf in held if kf.index in self.tracks]
         if len(keyframes) < 3:

@@ -121,6 +121,11 @@ class BundleConfig:
         "and 7-Scenes gain, room3 loses 0.04 cm (session 60); with the flow everywhere, "
         "realigned, room0 2.19 -> 2.08 and 7-Scenes 4.73 -> 4.49 (docs/results.md).",
     )
+    steps_linked: bool = option(
+        True,
+        "Hold the tracked turns and directions of the steps that features link (`linked` "
+        "points or more) too; false: only where they do not (`live_path`).",
+    )
     linked: int = option(
         10,
         "Points two consecutive keyframes must share for their step's length to be left to "
@@ -228,6 +233,25 @@ class BundleConfig:
     refit_iters: int = option(
         60, "Map iterations, poses fixed, after the keyframes moved (windows of 20)."
     )
+    live: bool = option(
+        False,
+        "At the end of a run whose rounds were live (`mapper.live_iters`: they describe no "
+        "features), describe every keyframe they left, the flow followed from keyframe to "
+        "keyframe (the only images a live mapper keeps), and adjust them as `live_path` "
+        "says: the tracked steps held only where features do not link them, no length "
+        "ratio held, nothing weighed. A live path is tracked against a map of a twentieth "
+        "of an offline run's iterations (room0 at 10 FPS: turns 0.37 degrees from the "
+        "truth's at the median, 0.08 offline), and a prior on such steps, weighed or not, "
+        "holds their error: room0 seed 0's live path 13.96 cm -> 5.01 with the offline "
+        "prior, 1.12 with this one (docs/results.md, session 67). Off: a live run keeps its "
+        "tracked poses.",
+    )
+
+    def live_path(self) -> BundleConfig:
+        """The adjustment of a live path (`live`): the tracked steps held only where the
+        features do not link their keyframes (`linked`), their lengths there alone, and no
+        variance component weighed (with most steps free there is little to weigh)."""
+        return dataclasses.replace(self, steps_linked=False, length_linked=0.0, weigh=0)
 
     @property
     def weighed(self) -> str:
@@ -947,6 +971,7 @@ def odometry_prior(
     free: torch.Tensor | None = None,
     length_linked: float = 0.0,
     pooled: bool = False,
+    unlinked_only: bool = False,
 ) -> Prior:
     """Whitened residuals (of world-to-camera poses) that keep each step between
     consecutive poses of `T_wc` turning as it did (within `turn_deg`) and moving in its
@@ -966,7 +991,9 @@ def odometry_prior(
     motion there is what the adjustment is to undo.
 
     With `pooled`, the directions are of the turns' variance component (`Prior.group` 0):
-    what `adjust`'s `weigh` weighs again, the step as one measurement."""
+    what `adjust`'s `weigh` weighs again, the step as one measurement. With
+    `unlinked_only`, turns and directions are held as the lengths are, as far as features
+    do not link the step (none with `linked` None)."""
     rel = pose.compose(pose.invert(T_wc[:-1]), T_wc[1:])
     size = rel[:, :3, 3].norm(dim=1, keepdim=True)
     median = size.median().clamp_min(1e-12)
@@ -999,6 +1026,8 @@ def odometry_prior(
     if free is not None:
         step_weight = (~free).to(T_wc.dtype)
         ratio_weight = ratio_weight * step_weight[1:] * step_weight[:-1]
+    if unlinked_only:
+        step_weight = step_weight * (held if linked is not None else 0)
     weight = weight * step_weight[:, None]
 
     def residuals(T_cw: torch.Tensor) -> torch.Tensor:
@@ -1044,6 +1073,7 @@ def prior_for(
         free=free,
         length_linked=cfg.length_linked,
         pooled=cfg.weigh_steps,
+        unlinked_only=not cfg.steps_linked,
     )
 
 

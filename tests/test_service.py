@@ -195,15 +195,22 @@ def test_the_mappers_end_of_run_bundle_adjustment_reaches_the_trajectory(sequenc
 
 def test_realtime_replays_the_sequence_as_a_live_camera(sequence, tmp_path, capsys):
     """`--realtime`: the camera holds only until the map exists, then sends at the rate and
-    never waits; the tracker keeps the newest frame when busy and reports what it did."""
+    never waits; the tracker keeps the newest frame when busy and reports what it did; with
+    `--bundle.live`, the mapper describes the keyframes its live rounds left at the end and
+    adjusts them."""
     out = tmp_path / "run"
     args = ["--preset", "tiny", "--no-mesh", "--realtime", "10", "--mapper.live_iters", "2"]
-    args += ["--tracker.live_min_inliers", "0.2"]
+    args += ["--tracker.live_min_inliers", "0.2", "--bundle.enabled", "true"]
+    args += ["--bundle.live", "true"]
     assert main(["run", str(sequence), "--out", str(out), *args]) == 0
     assert "frames received" in capsys.readouterr().out
     # The tracker's batches say the frames are live: the mapper's rounds on them are short.
-    summary = re.search(r"(\d+) rounds \((\d+) short", (out / "mapper.log").read_text())
+    log = (out / "mapper.log").read_text()
+    summary = re.search(r"(\d+) rounds \((\d+) short", log)
     assert summary and 0 < int(summary[2]) == int(summary[1]) - 1  # all but the initialization
+    described = re.search(r"described (\d+) keyframes the live rounds left", log)
+    assert described and int(described[1]) > 0
+    assert "feature bundle adjustment of" in log
     # The tracker judges a live stream's frames by the live share of inliers.
     assert "a live stream: a frame is lost under 20 % inliers" in (out / "tracker.log").read_text()
     metrics = json.loads((out / "metrics.json").read_text())

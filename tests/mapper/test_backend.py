@@ -352,6 +352,30 @@ def test_a_round_on_live_frames_is_short_and_refines_nothing_globally():
     assert back.step(live=True).stats.iterations == 3
 
 
+@pytest.mark.parametrize("live", [True, False])
+def test_a_live_run_describes_its_keyframes_at_the_end_and_adjusts_them(tmp_path, live):
+    """`bundle.live`: after live rounds (which describe nothing), the end of the run
+    describes every keyframe from the images a live mapper keeps (the keyframes' alone
+    here) and adjusts them with the live path's prior: the drifted path comes back to one
+    scale. Off, the adjustment is skipped (too few keyframes described) and every pose
+    stays as tracked."""
+    back, frames, truth, drifted = _drifted(tmp_path, **{"bundle.live": str(live).lower()})
+    for f in frames:
+        if not f.keyframe:
+            f.rgb = None  # released, as after a live round
+    back.add(frames)
+    back.initialized = True
+    back.short_rounds = 3
+    assert back.finish()
+    described = sorted(back.tracks.keyframes)
+    if live:
+        assert described == [f.index for f in frames if f.keyframe]
+        _assert_one_scale(back, truth, drifted)
+    else:
+        assert described == []
+        assert all(torch.equal(f.T_wc, drifted[f.index]) for f in frames)
+
+
 def test_keyframes_the_features_never_described_follow_the_adjustment(tmp_path):
     """A mapper behind a live camera describes only the keyframes of its rounds: one between
     two described keyframes moves as they did, interpolated by its place between them, one

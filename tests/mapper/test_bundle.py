@@ -340,6 +340,32 @@ def test_a_free_step_is_not_held_by_the_prior():
         assert float(loose(pose.invert(moved)).abs().max()) < 1e-9
 
 
+def test_a_live_path_holds_only_the_steps_no_feature_links():
+    """`BundleConfig.live_path`: a step that `linked` points or more link is left to the
+    features (turn, direction and length free), one that none links is held as tracked."""
+    T_wc, _, _ = _scene(cameras=10)
+    twist = torch.tensor([0.05, 0.02, -0.03, 0.01, -0.04, 0.02], dtype=torch.float64)
+    cfg = BundleConfig(length_linked=0.2, weigh=3, weigh_steps=True).live_path()
+    assert (cfg.steps_linked, cfg.length_linked, cfg.weigh) == (False, 0.0, 0)
+    shared = torch.full((9,), 50)
+    shared[6] = 0  # step 6 -> 7: no point links it
+    prior = odometry_prior(
+        T_wc, cfg.turn_deg, cfg.direction, cfg.length, shared, cfg.linked, unlinked_only=True
+    )
+    for step, held in ((3, False), (6, True)):
+        about = T_wc[step] @ pose.exp_se3(twist) @ pose.invert(T_wc[step])
+        moved = T_wc.clone()
+        moved[step + 1 :] = about @ T_wc[step + 1 :]  # that step changed, every other as it was
+        residual = float(prior(pose.invert(moved)).abs().max())
+        assert residual > 1.0 if held else residual < 1e-9
+    # Offline every step's turn and direction are held, linked or not.
+    offline = odometry_prior(T_wc, 0.1, 0.03, 0.05, shared, 10)
+    about = T_wc[3] @ pose.exp_se3(twist) @ pose.invert(T_wc[3])
+    moved = T_wc.clone()
+    moved[4:] = about @ T_wc[4:]
+    assert float(offline(pose.invert(moved)).abs().max()) > 1.0
+
+
 def test_a_slide_is_many_keyframes_against_the_tracked_motion_not_one():
     cosine, inliers = np.ones(24), np.full(24, 300)
     cosine[:3] = np.nan  # no keyframe 3 before them
