@@ -41,10 +41,11 @@ holds the ratios of the linked steps too, within L (`bundle.length_linked`).
 between the first and the last keyframe, observed at the keyframes (`bundle.flow`,
 `mapper.bundle.FlowTracks`), as points of their own beside the ORB tracks.
 
-`--live` does what the mapper does at the end of a run whose rounds were live
-(`bundle.live`): the flow goes from keyframe to keyframe (a live mapper keeps no other
-image), and the `--odometry` prior holds only the steps that fewer than `--linked` points
-link, no length ratio where they do, nothing weighed (`BundleConfig.live_path`).
+`--live` does what the mapper does with a run whose rounds were live (`bundle.live`): the
+flow is observed at every frame of the run's trajectory.txt (the frames a live mapper
+gets), all of them are held, ORB describes the keyframes alone, and the `--odometry` prior
+holds only the steps that fewer than `--linked` points link, no length ratio where they do,
+nothing weighed (`BundleConfig.live_path`).
 
 `--noise PX` replaces every observation by the projection of its point at the true poses
 plus Gaussian noise: the features as an ideal detector would give them, which separates
@@ -374,9 +375,10 @@ def main() -> None:
     p.add_argument(
         "--live",
         action="store_true",
-        help="what the mapper does at the end of a live run (bundle.live): the flow followed "
-        "from keyframe to keyframe, the tracked steps held only where features do not link "
-        "them (with --odometry), no length ratio held, nothing weighed",
+        help="what the mapper does with a live run (bundle.live): every frame of "
+        "trajectory.txt held, the flow observed at each (ORB at the keyframes alone), the "
+        "tracked steps held only where features do not link them (with --odometry), no "
+        "length ratio held, nothing weighed",
     )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
@@ -412,6 +414,10 @@ def main() -> None:
         except ValueError as error:
             p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")
+    described = {round(float(t), 4) for t in keyframes.timestamps}  # ORB features
+    if args.live:  # a live mapper's flow observes every frame it maps; all are held
+        keyframes = read_tum(args.run / "trajectory.txt")
+        print(f"every frame held: {len(keyframes)}, {len(described)} of them described")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
     K = torch.from_numpy(reader.camera.K)
     wanted = {round(float(t), 4): k for k, t in enumerate(keyframes.timestamps)}
@@ -423,8 +429,9 @@ def main() -> None:
         if k is not None:
             images[k] = grey_image(frame.rgb)
             truth[k], at[k] = frame.T_wc, i
-        # A live mapper keeps the keyframes' images alone: its flow goes keyframe to keyframe.
-        if flow is not None and at and (k is not None or not args.live):
+        if flow is not None and args.live and k is not None:
+            flow.add(i, images[k], round(frame.timestamp, 4) in described, observe=True)
+        elif flow is not None and at and not args.live:
             flow.add(i, images[k] if k is not None else grey_image(frame.rgb), k is not None)
     if len(images) != len(wanted) or any(t is None for t in truth.values()):
         p.error(f"{args.dataset}: {len(images)} of {len(wanted)} keyframes found with ground truth")
@@ -432,7 +439,8 @@ def main() -> None:
     tracks = FeatureTracks(K.numpy(), defaults.features, args.neighbours)
     indices = [at[k] for k in range(n)]  # keyframe k is frame indices[k] of the sequence
     for k in range(n):
-        tracks.add(indices[k], images[k])
+        if round(float(keyframes.timestamps[k]), 4) in described:
+            tracks.add(indices[k], images[k])
     turn_deg, direction = args.odometry or (defaults.turn_deg, defaults.direction)
     config = BundleConfig(
         turn_deg=turn_deg,

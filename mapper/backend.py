@@ -206,7 +206,8 @@ class BackEnd:
             with self._timed("map"):
                 iters = self.cfg.mapper.live_iters if short else None
                 result = self.mapper.map(window, self.keyframes, iters)
-        self._anchor(self._fresh(window))
+        fresh = self._fresh(window)
+        self._anchor(fresh)
         every = self.cfg.mapper.global_every
         if every > 0 and self.rounds > 0 and self.rounds % every == 0 and not short:
             with self._timed("global"):
@@ -216,6 +217,9 @@ class BackEnd:
         if not short:  # the features serve the end-of-run adjustment (`bundle.min_described`)
             with self._timed("features"):
                 self._describe(window)
+        elif self.cfg.bundle.live:
+            with self._timed("flow"):
+                self._observe_live(fresh)
         every = self.cfg.bundle.every
         if self.tracks is not None and every > 0:
             if len(self.tracks.keyframes) - self.adjusted_at >= every:
@@ -268,10 +272,10 @@ class BackEnd:
         """The round's `window` (the newest frames held) with every frame received since the
         previous round: the frames from the older of the two on. A mapper that fell behind a
         live stream maps only the newest frames of its backlog, but the others still anchor
-        to their keyframes, so that they follow later corrections. They do not join the
-        feature tracks: describing a keyframe costs 100-200 ms, a live backlog holds dozens
-        (room0 at 10 FPS, one run: rounds of 18.3 s against 12.3 s without, and the
-        adjustment of all 55 keyframes moved them 8 mm at the median)."""
+        to their keyframes, so that they follow later corrections, and (`bundle.live`) the
+        flow observes them. They are not described in the round: describing a keyframe
+        costs 100-200 ms, a live backlog holds dozens (room0 at 10 FPS, one run: rounds of
+        18.3 s against 12.3 s without); the end of the run describes the keyframes."""
         start = min(self.taken, len(self.frames) - len(window))
         self.taken = len(self.frames)
         return self.frames[start:]
@@ -413,10 +417,24 @@ class BackEnd:
         of its rounds were, and described nothing."""
         return self.cfg.bundle.live and self.short_rounds > 0
 
+    def _observe_live(self, frames: list[FrameState]) -> None:
+        """A live round's new `frames` (path order) into the flow (`bundle.live`): followed
+        through each and observed at each, with corners started at the keyframes; every
+        frame it observes is held by the end-of-run adjustment (`extra`). The keyframes'
+        ORB features wait for the end (`_describe_left`): they cost 100-200 ms each, the
+        flow a few ms a frame."""
+        if self.flow is None:
+            return
+        for f in frames:
+            if f.rgb is None:
+                continue
+            self.flow.add(f.index, grey_image(f.rgb), f.keyframe, observe=True)
+            if not f.keyframe and f.index in self.flow:
+                self.extra.add(f.index)
+
     def _describe_left(self) -> None:
-        """Describe the keyframes that the live rounds left undescribed, from the images
-        the mapper keeps (the keyframes' and the newest frames'): the flow goes from one to
-        the next."""
+        """Describe the keyframes that the live rounds left undescribed (ORB), from the
+        images the mapper keeps (the keyframes' and the newest frames')."""
         started = time.perf_counter()
         before = len(self.tracks.keyframes)
         self._describe(self.frames)
@@ -454,7 +472,12 @@ class BackEnd:
         assert self.tracks is not None
         cfg = self.cfg.bundle.live_path() if self._live_path() else self.cfg.bundle
         held = [f for f in self.frames if self._held(f)]
-        keyframes = [kf for kf in held if kf.index in self.tracks]
+        # Described: ORB features, or (a live run's frames) the flow's alone.
+        keyframes = [
+            kf
+            for kf in held
+            if kf.index in self.tracks or (self.flow is not None and kf.index in self.flow)
+        ]
         if len(keyframes) < 3:
             return
         if len(keyframes) < cfg.min_described * len(held):

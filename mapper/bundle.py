@@ -235,16 +235,16 @@ class BundleConfig:
     )
     live: bool = option(
         False,
-        "At the end of a run whose rounds were live (`mapper.live_iters`: they describe no "
-        "features), describe every keyframe they left, the flow followed from keyframe to "
-        "keyframe (the only images a live mapper keeps), and adjust them as `live_path` "
-        "says: the tracked steps held only where features do not link them, no length "
-        "ratio held, nothing weighed. A live path is tracked against a map of a twentieth "
-        "of an offline run's iterations (room0 at 10 FPS: turns 0.37 degrees from the "
-        "truth's at the median, 0.08 offline), and a prior on such steps, weighed or not, "
-        "holds their error: room0 seed 0's live path 13.96 cm -> 5.01 with the offline "
-        "prior, 1.12 with this one (docs/results.md, session 67). Off: a live run keeps its "
-        "tracked poses.",
+        "A run whose rounds are live (`mapper.live_iters`: they describe no ORB features) "
+        "still follows the flow (`flow`) through every frame they map, observed at each; "
+        "at its end the mapper describes the keyframes (ORB) and adjusts every frame the "
+        "flow observed, as `live_path` says: the tracked steps held only where features "
+        "do not link them, no length ratio held, nothing weighed. A live path is tracked "
+        "against a map of a twentieth of an offline run's iterations (room0 at 10 FPS: "
+        "turns 0.37 degrees from the truth's at the median, 0.08 offline), and a prior on "
+        "such steps, weighed or not, holds their error: room0 seed 0's live path 13.96 cm "
+        "-> 5.01 with the offline prior, 1.12 with this one on the keyframes, 0.71 on every "
+        "frame (docs/results.md, session 67). Off: a live run keeps its tracked poses.",
     )
 
     def live_path(self) -> BundleConfig:
@@ -423,10 +423,13 @@ class FeatureTracks:
         self.parent[self._root(self.offset[a] + i)] = self._root(self.offset[b] + j)
 
     def _tracked(self, indices: list[int], views: int) -> tuple[Observations, np.ndarray]:
-        """`observations`, and each observation's feature id."""
+        """`observations`, and each observation's feature id; a frame of `indices` never
+        described (one the flow alone observes, `FlowTracks.add`) has none."""
         kf, ids, uv, sigma = [], [], [], []
         for k, index in enumerate(indices):
-            f = self.keyframes[index]
+            f = self.keyframes.get(index)
+            if f is None:
+                continue
             kf.append(np.full(len(f.points), k))
             ids.append(self.offset[index] + np.arange(len(f.points)))
             uv.append(f.points)
@@ -474,7 +477,7 @@ class FeatureTracks:
         p, k_of, fid = kept.p.numpy(), kept.k.numpy(), ids[rows]
         seen = np.zeros((kept.points, len(indices)), bool)
         seen[p, k_of] = True
-        firsts = np.array([self.offset[i] for i in indices])
+        firsts = np.array([self.offset.get(i, 0) for i in indices])  # 0: not described
         local = fid - firsts[k_of]
         desc = np.stack(
             [self.keyframes[indices[k]].descriptors[j] for k, j in zip(k_of, local, strict=True)]
@@ -494,8 +497,8 @@ class FeatureTracks:
         links = 0
         T = T_cw.numpy()
         for kk, index in enumerate(indices):
-            f = self.keyframes[index]
-            if f.descriptors is None or len(f.points) == 0:
+            f = self.keyframes.get(index)
+            if f is None or f.descriptors is None or len(f.points) == 0:
                 continue
             c = X @ T[kk, :3, :3].T + T[kk, :3, 3]
             z = np.maximum(c[:, 2], 1e-9)
@@ -601,20 +604,36 @@ class FlowTracks:
         self.images: dict[int, np.ndarray] = {}  # keyframes that followed corners started at
         self.tracks = 0
         self.seen: list[tuple[int, np.ndarray, np.ndarray]] = []  # keyframe, tracks, pixels
+        self.frames: set[int] = set()  # the frames of `seen`
 
-    def add(self, index: int, grey: np.ndarray, keyframe: bool) -> None:
+    def __contains__(self, index: int) -> bool:
+        """Whether frame `index` was observed (a keyframe or an `observe`d frame)."""
+        return index in self.frames
+
+    def add(self, index: int, grey: np.ndarray, keyframe: bool, observe: bool = False) -> None:
         """Frame `index` (8-bit grey, newer than every one added): the corners followed
-        into it, and at a keyframe observed there with new ones started."""
+        into it, and at a keyframe observed there with new ones started. With `observe`, a
+        frame that is not a keyframe but is held by the adjustment (a live run's,
+        `BundleConfig.live`): its corners are aligned again (with `realign`) and observed
+        there, none started."""
         if index <= self.last:
             return
         if self.previous is not None and len(self.points):
             self._follow(grey)
+        if observe and not keyframe:
+            if self.realign:
+                self._realign(grey)
+            self._observe(index)
         if keyframe:
             if self.realign:
                 self._realign(grey)
             self._start(grey, index)
-            self.seen.append((index, self.ids.copy(), self.points.astype(np.float64)))
+            self._observe(index)
         self.previous, self.last = grey, index
+
+    def _observe(self, index: int) -> None:
+        self.seen.append((index, self.ids.copy(), self.points.astype(np.float64)))
+        self.frames.add(index)
 
     def _realign(self, grey: np.ndarray) -> None:
         """Each corner followed, aligned again with its patch in the keyframe it started at
@@ -819,11 +838,9 @@ def _reduced(
     eliminated (inverse point blocks `H_pp_inv`; `ii`, `jj` from `_schur_pairs`)."""
     m = len(H_cc)
     S = H_cc.clone()
-    S.index_put_(
-        (col[ii], col[jj]),
-        -(H_cp[ii] @ H_pp_inv[p[ii]] @ H_cp[jj].transpose(1, 2)),
-        accumulate=True,
-    )
+    W = H_cp @ H_pp_inv[p]  # per observation, not per pair (a live run's pairs: millions)
+    blocks = S.view(m * m, 6, 6)
+    blocks.index_add_(0, col[ii] * m + col[jj], -(W[ii] @ H_cp[jj].transpose(1, 2)))
     return S.transpose(1, 2).reshape(6 * m, 6 * m)
 
 

@@ -354,23 +354,34 @@ def test_a_round_on_live_frames_is_short_and_refines_nothing_globally():
 
 @pytest.mark.parametrize("live", [True, False])
 def test_a_live_run_describes_its_keyframes_at_the_end_and_adjusts_them(tmp_path, live):
-    """`bundle.live`: after live rounds (which describe nothing), the end of the run
-    describes every keyframe from the images a live mapper keeps (the keyframes' alone
-    here) and adjusts them with the live path's prior: the drifted path comes back to one
-    scale. Off, the adjustment is skipped (too few keyframes described) and every pose
-    stays as tracked."""
-    back, frames, truth, drifted = _drifted(tmp_path, **{"bundle.live": str(live).lower()})
-    for f in frames:
-        if not f.keyframe:
-            f.rgb = None  # released, as after a live round
+    """`bundle.live`: live rounds describe no ORB features but follow the flow through
+    their frames, observed at every one; the end of the run describes every keyframe from
+    the images a live mapper keeps (the keyframes' alone here) and adjusts every frame the
+    flow observed with the live path's prior: the drifted path comes back to one scale,
+    frame by frame. Off, the adjustment is skipped (too few keyframes described) and every
+    pose stays as tracked."""
+    back, frames, truth, drifted = _drifted(
+        tmp_path, **{"bundle.live": str(live).lower(), "bundle.flow": "300"}
+    )
     back.add(frames)
     back.initialized = True
     back.short_rounds = 3
+    if live:
+        back._observe_live(frames)  # what the live rounds did
+        assert back.extra == {f.index for f in frames if not f.keyframe}
+    for f in frames:
+        if not f.keyframe:
+            f.rgb = None  # released, as after a live round
     assert back.finish()
     described = sorted(back.tracks.keyframes)
     if live:
         assert described == [f.index for f in frames if f.keyframe]
         _assert_one_scale(back, truth, drifted)
+        final = torch.from_numpy(back.trajectory().poses).float()
+        steps = (final[1:, :3, 3] - final[:-1, :3, 3]).norm(dim=1)
+        ratio = steps / (truth[1:, :3, 3] - truth[:-1, :3, 3]).norm(dim=1)
+        # Every frame's step at one scale (1.11; 1.54 with the keyframes alone held).
+        assert float(ratio.max() / ratio.min()) < 1.2
     else:
         assert described == []
         assert all(torch.equal(f.T_wc, drifted[f.index]) for f in frames)
