@@ -134,9 +134,11 @@ PRESETS: dict[str, SlamConfig] = {
             # the initialization's only keyframe): AMD, 3 seeds, room0 0.86 -> 0.77, room3
             # 1.46 -> 1.03, room5 1.55 -> 1.48, 7-Scenes the same (no frame marked)
             # (docs/results.md, session 66).
-            # A live run's keyframes are described at its end and adjusted with the tracked
-            # steps held only where no feature links them: room0 at 10 FPS, seed 0, the
-            # final trajectory 13.96 -> 1.12 cm on one run (docs/results.md, session 67).
+            # A live run follows the flow through every frame, describes its keyframes at
+            # its end and adjusts every frame with the tracked steps held only where no
+            # feature links them: room0 at 10 FPS, seed 0, 3 runs through the service, the
+            # final trajectory 0.61 / 0.72 / 0.70 cm (as published 9-19), the offline run
+            # 0.67 (`benchmarks/live.py`; docs/results.md, session 67).
             bundle=BundleConfig(
                 enabled=True,
                 init_frames=True,
