@@ -375,8 +375,8 @@ def main() -> None:
     p.add_argument(
         "--live",
         action="store_true",
-        help="what the mapper does with a live run (bundle.live): every frame of "
-        "trajectory.txt held, the flow observed at each (ORB at the keyframes alone), the "
+        help="what the mapper does with a live run (bundle.live): with --flow, every frame "
+        "of trajectory.txt held, the flow observed at each (ORB at the keyframes alone), the "
         "tracked steps held only where features do not link them (with --odometry), no "
         "length ratio held, nothing weighed",
     )
@@ -415,7 +415,7 @@ def main() -> None:
             p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")
     described = {round(float(t), 4) for t in keyframes.timestamps}  # ORB features
-    if args.live:  # a live mapper's flow observes every frame it maps; all are held
+    if args.live and args.flow > 0:  # a live mapper's flow observes every frame it maps
         keyframes = read_tum(args.run / "trajectory.txt")
         print(f"every frame held: {len(keyframes)}, {len(described)} of them described")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))

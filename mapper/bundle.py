@@ -620,14 +620,11 @@ class FlowTracks:
             return
         if self.previous is not None and len(self.points):
             self._follow(grey)
-        if observe and not keyframe:
+        if keyframe or observe:
             if self.realign:
                 self._realign(grey)
-            self._observe(index)
-        if keyframe:
-            if self.realign:
-                self._realign(grey)
-            self._start(grey, index)
+            if keyframe:
+                self._start(grey, index)
             self._observe(index)
         self.previous, self.last = grey, index
 
