@@ -390,7 +390,7 @@ def main() -> None:
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
-    if args.fill_gaps is not None or args.init_keyframes:
+    if args.fill_gaps is not None or args.init_keyframes or args.live:
         every_frame = read_tum(args.run / "trajectory.txt")
     if args.fill_gaps is not None:
         if args.fill_gaps <= 1:
@@ -416,7 +416,7 @@ def main() -> None:
         print(f"keyframes with the initialization's frames: {len(keyframes)}")
     described = {round(float(t), 4) for t in keyframes.timestamps}  # ORB features
     if args.live and args.flow > 0:  # a live mapper's flow observes every frame it maps
-        keyframes = read_tum(args.run / "trajectory.txt")
+        keyframes = every_frame
         print(f"every frame held: {len(keyframes)}, {len(described)} of them described")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
     K = torch.from_numpy(reader.camera.K)
