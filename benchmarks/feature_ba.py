@@ -4,7 +4,8 @@
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
-        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR] [--live]
+        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR [--fill-evenly]] [--live]
+        [--keyframes-from RUN2]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -46,6 +47,10 @@ flow is observed at every frame of the run's trajectory.txt (the frames a live m
 gets), all of them are held, ORB describes the keyframes alone, and the `--odometry` prior
 holds only the steps that fewer than `--linked` points link, no length ratio where they do,
 nothing weighed (`BundleConfig.live_path`).
+
+`--keyframes-from RUN2` adjusts this run's path at another run's keyframes (the frames of
+RUN2's keyframes.txt, posed as this run's trajectory.txt has them): which of two runs'
+differences is their paths' and which their keyframes' (two trackers on one sequence, say).
 
 `--noise PX` replaces every observation by the projection of its point at the true poses
 plus Gaussian noise: the features as an ideal detector would give them, which separates
@@ -156,6 +161,25 @@ def _joined(keyframes: Trajectory, frames: Trajectory, at: np.ndarray, extra) ->
     )
 
 
+def keyframes_at(frames: Trajectory, other: Trajectory) -> Trajectory:
+    """The frames of `frames` that `other`'s keyframes are, with `frames`' poses
+    (`--keyframes-from`).
+
+    Raises:
+        ValueError: a keyframe of `other` that is not a frame of `frames`.
+    """
+    stamps = np.round(frames.timestamps, 4)
+    at = np.searchsorted(stamps, np.round(other.timestamps, 4))
+    at = np.minimum(at, len(stamps) - 1)
+    missing = stamps[at] != np.round(other.timestamps, 4)
+    if missing.any():
+        raise ValueError(
+            f"--keyframes-from: {int(missing.sum())} keyframes are not frames of this run's "
+            f"trajectory.txt (the first at t = {float(other.timestamps[missing][0]):.4f})"
+        )
+    return Trajectory(frames.timestamps[at], frames.poses[at])
+
+
 def with_init_keyframes(
     keyframes: Trajectory, frames: Trajectory, chosen: list[int] | None = None
 ) -> Trajectory:
@@ -182,23 +206,29 @@ def with_init_keyframes(
     return _joined(keyframes, frames, at, extra)
 
 
-def with_gap_frames(keyframes: Trajectory, frames: Trajectory, factor: float) -> Trajectory:
+def with_gap_frames(
+    keyframes: Trajectory, frames: Trajectory, factor: float, evenly: bool = False
+) -> Trajectory:
     """`keyframes` with frames in every gap between consecutive ones, after the first gap
     (the initialization's, left to `with_init_keyframes`), of at least `factor` times the
     run's median keyframe spacing, at that spacing (`--fill-gaps`): the frames a long gap
-    carries rigidly from the keyframe before it, held by the adjustment instead.
+    carries rigidly from the keyframe before it, held by the adjustment instead. `evenly`
+    (`--fill-evenly`): in every gap longer than `factor` spacings, the fewest frames that
+    leave no piece of it longer, evenly spaced.
 
     Raises:
         ValueError: fewer than two keyframes, or one that is not a frame of `frames`.
     """
     at = _rows(keyframes, frames, "--fill-gaps")
     gap = max(1, int(np.median(np.diff(at))))
-    extra = [
-        i
-        for a, b in zip(at[1:-1], at[2:], strict=True)
-        if b - a >= factor * gap
-        for i in range(a + gap, b - gap // 2, gap)
-    ]
+    pairs = list(zip(at[1:-1], at[2:], strict=True))
+    if evenly:
+        pieces = [(a, b, int(np.ceil((b - a) / (factor * gap)))) for a, b in pairs]
+        extra = [a + round((b - a) * j / n) for a, b, n in pieces for j in range(1, n)]
+    else:
+        extra = [
+            i for a, b in pairs if b - a >= factor * gap for i in range(a + gap, b - gap // 2, gap)
+        ]
     return _joined(keyframes, frames, at, np.asarray(extra, dtype=int))
 
 
@@ -373,6 +403,20 @@ def main() -> None:
         "the frames between from them (the run unchanged)",
     )
     p.add_argument(
+        "--fill-evenly",
+        action="store_true",
+        help="with --fill-gaps: in every gap longer than FACTOR spacings, the fewest frames "
+        "that leave no piece of it longer, evenly spaced (a gap of 15 at spacing 2 and FACTOR "
+        "3: 2 frames, not 7)",
+    )
+    p.add_argument(
+        "--keyframes-from",
+        type=Path,
+        metavar="RUN2",
+        help="adjust at another run's keyframes: the frames of RUN2/keyframes.txt, posed as "
+        "this run's trajectory.txt has them (before --init-keyframes and --fill-gaps)",
+    )
+    p.add_argument(
         "--live",
         action="store_true",
         help="what the mapper does with a live run (bundle.live): with --flow, every frame "
@@ -390,13 +434,21 @@ def main() -> None:
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     keyframes = read_tum(args.run / "keyframes.txt")
-    if args.fill_gaps is not None or args.init_keyframes or args.live:
+    if args.fill_gaps is not None or args.init_keyframes or args.live or args.keyframes_from:
         every_frame = read_tum(args.run / "trajectory.txt")
+    if args.keyframes_from is not None:
+        try:
+            keyframes = keyframes_at(every_frame, read_tum(args.keyframes_from / "keyframes.txt"))
+        except (OSError, ValueError) as error:
+            p.error(str(error))
+        print(f"keyframes of {args.keyframes_from}: {len(keyframes)}")
+    if args.fill_evenly and args.fill_gaps is None:
+        p.error("--fill-evenly needs --fill-gaps FACTOR")
     if args.fill_gaps is not None:
         if args.fill_gaps <= 1:
             p.error("--fill-gaps must be > 1")
         try:
-            keyframes = with_gap_frames(keyframes, every_frame, args.fill_gaps)
+            keyframes = with_gap_frames(keyframes, every_frame, args.fill_gaps, args.fill_evenly)
         except ValueError as error:
             p.error(str(error))
         print(f"keyframes with the long gaps' frames: {len(keyframes)}")

@@ -698,3 +698,37 @@ def test_the_benchmark_fills_the_long_gaps_between_keyframes(monkeypatch):
     assert np.allclose(filled.timestamps, every.timestamps[expected])
     assert np.allclose(filled.poses, every.poses[expected])
     assert len(fba.with_gap_frames(keyframes, every, 5)) == len(at)  # 8 < 5 x 2
+
+
+def test_the_benchmark_splits_long_gaps_evenly(monkeypatch):
+    """`--fill-gaps 3 --fill-evenly`: at spacing 2, the gap of 15 after frame 17 gets frames
+    22 and 27 (three pieces of 5), the gap of 7 after 32 frame 36 (or 35: two pieces of 3-4),
+    the gap of 6 none (not longer than 3 spacings), the gaps of 2 none."""
+    fba = benchmark(monkeypatch, "feature_ba")
+    twists = torch.zeros(56, 6, dtype=torch.float64)
+    twists[:, 0] = torch.arange(56) * 0.05
+    every = Trajectory(1 + np.arange(56) / 30, pose.exp_se3(twists).numpy())
+    at = [0, 13, 15, 17, 32, 39, 41, 43, 49, 51, 53, 55]
+    keyframes = Trajectory(every.timestamps[at], every.poses[at])
+    filled = fba.with_gap_frames(keyframes, every, 3, evenly=True)
+    rows = np.round((filled.timestamps - 1) * 30).astype(int).tolist()
+    assert rows[:5] == [0, 13, 15, 17, 22] and rows[5] == 27 and rows[6] == 32
+    assert rows[7] in (35, 36) and rows[8:] == [39, 41, 43, 49, 51, 53, 55]
+    assert np.allclose(filled.poses, every.poses[rows])
+    # The default fills every 2nd frame of the gaps of 6 spacings or more.
+    assert len(fba.with_gap_frames(keyframes, every, 3)) == len(at) + 6 + 2 + 2
+
+
+def test_the_benchmark_adjusts_at_another_runs_keyframes(tmp_path, monkeypatch):
+    """`--keyframes-from`: the other run's keyframe frames, posed as this run's path has
+    them; a keyframe that is not a frame of this run is an error that names it."""
+    fba = benchmark(monkeypatch, "feature_ba")
+    twists = torch.zeros(10, 6, dtype=torch.float64)
+    twists[:, 2] = torch.arange(10) * 0.03
+    every = Trajectory(1 + np.arange(10) / 30, pose.exp_se3(twists).numpy())
+    other = Trajectory(every.timestamps[[0, 3, 7]], np.stack([np.eye(4)] * 3))
+    at = fba.keyframes_at(every, other)
+    assert np.allclose(at.timestamps, every.timestamps[[0, 3, 7]])
+    assert np.allclose(at.poses, every.poses[[0, 3, 7]])
+    with pytest.raises(ValueError, match="1 keyframes are not frames"):
+        fba.keyframes_at(every, Trajectory(np.array([1.0, 7.5]), np.stack([np.eye(4)] * 2)))
