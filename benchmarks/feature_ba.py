@@ -575,6 +575,7 @@ def main() -> None:
             result = adjust_tracks(tracks, indices, blind_start, K, config, prior, flow, free)
             T_ba, cost, held = result.T_wc, result.cost, "-"
             blind, kept = T_ba, f"{result.points} points, {result.observations} observations"
+            kept += f"; held frames {at[result.held]} and {at[result.held + 1]}"
             if args.guided:
                 kept += f" ({result.guided} by guided matching)"
             if result.factors:
