@@ -757,15 +757,21 @@ def _huber(r: torch.Tensor, c: torch.Tensor, delta: float) -> float:
 
 
 def _schur_pairs(obs: Observations, free: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every ordered pair of observations of one point, both on free poses."""
+    """Every pair of observations of one point, both on free poses, each unordered pair once
+    (the first before the second in the observations' order) and each observation with
+    itself: `_reduced` gets the pairs' mirror images by symmetry."""
     index = torch.nonzero(free)[:, 0]
     index = index[torch.argsort(obs.p[index], stable=True)]
     bounds = torch.searchsorted(obs.p[index], torch.arange(obs.points + 1)).tolist()
     first, second = [torch.zeros(0, dtype=torch.long)], [torch.zeros(0, dtype=torch.long)]
+    upper: dict[int, torch.Tensor] = {}
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         if b > a:
-            first.append(index[a:b].repeat_interleave(b - a))
-            second.append(index[a:b].repeat(b - a))
+            if b - a not in upper:
+                upper[b - a] = torch.triu_indices(b - a, b - a)
+            pairs = index[a:b][upper[b - a]]
+            first.append(pairs[0])
+            second.append(pairs[1])
     return torch.cat(first), torch.cat(second)
 
 
@@ -832,12 +838,17 @@ def _reduced(
     jj: torch.Tensor,
 ) -> torch.Tensor:
     """The reduced camera system `(6 m, 6 m)`: the pose blocks `H_cc` with the points
-    eliminated (inverse point blocks `H_pp_inv`; `ii`, `jj` from `_schur_pairs`)."""
+    eliminated (inverse point blocks `H_pp_inv`; `ii`, `jj` from `_schur_pairs`, each
+    unordered pair once: the block of pair (j, i) is that of (i, j) transposed, so the
+    products are computed once and the sum added to its transpose, an observation's pair
+    with itself halved)."""
     m = len(H_cc)
-    S = H_cc.clone()
     W = H_cp @ H_pp_inv[p]  # per observation, not per pair (a live run's pairs: millions)
-    blocks = S.view(m * m, 6, 6)
-    blocks.index_add_(0, col[ii] * m + col[jj], -(W[ii] @ H_cp[jj].transpose(1, 2)))
+    products = W[ii] @ H_cp[jj].transpose(1, 2)
+    products[ii == jj] *= 0.5
+    eliminated = torch.zeros_like(H_cc)
+    eliminated.view(m * m, 6, 6).index_add_(0, col[ii] * m + col[jj], products)
+    S = H_cc - eliminated - eliminated.permute(1, 0, 3, 2)
     return S.transpose(1, 2).reshape(6 * m, 6 * m)
 
 

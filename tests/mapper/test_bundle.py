@@ -20,6 +20,8 @@ from dimslam.mapper.bundle import (
     FeatureTracks,
     FlowTracks,
     Observations,
+    _reduced,
+    _schur_pairs,
     adjust,
     adjust_tracks,
     bundle_adjust,
@@ -732,3 +734,32 @@ def test_the_benchmark_adjusts_at_another_runs_keyframes(tmp_path, monkeypatch):
     assert np.allclose(at.poses, every.poses[[0, 3, 7]])
     with pytest.raises(ValueError, match="1 keyframes are not frames"):
         fba.keyframes_at(every, Trajectory(np.array([1.0, 7.5]), np.stack([np.eye(4)] * 2)))
+
+
+def test_the_reduced_camera_system_is_the_points_eliminated():
+    """`_reduced` with each unordered pair of a point's observations once (`_schur_pairs`)
+    is the dense elimination H_cc - H_cp H_pp^-1 H_cp^T, mirrored blocks and all."""
+    generator = torch.Generator().manual_seed(0)
+    m, points = 7, 40
+    k, p = [], []
+    for point in range(points):
+        seen = torch.randperm(m, generator=generator)[: 1 + point % m]
+        k += seen.tolist()
+        p += [point] * len(seen)
+    n = len(p)
+    obs = Observations(torch.tensor(k), torch.tensor(p), torch.zeros(n, 2), torch.ones(n))
+    H_cp = torch.randn(n, 6, 3, dtype=torch.float64, generator=generator)
+    A = torch.randn(points, 3, 3, dtype=torch.float64, generator=generator)
+    H_pp_inv = A @ A.transpose(1, 2) + torch.eye(3, dtype=torch.float64)
+    B = torch.randn(6 * m, 6 * m, dtype=torch.float64, generator=generator)
+    H = B @ B.T
+    H_cc = H.reshape(m, 6, m, 6).transpose(1, 2).contiguous()
+    ii, jj = _schur_pairs(obs, torch.ones(n, dtype=torch.bool))
+    assert len(ii) == sum(c * (c + 1) // 2 for c in torch.bincount(obs.p).tolist())
+    S = _reduced(H_cc, H_cp, H_pp_inv, obs.p, obs.k, ii, jj)
+    H_cp_dense = torch.zeros(6 * m, 3 * points, dtype=torch.float64)
+    for i in range(n):
+        H_cp_dense[6 * k[i] : 6 * k[i] + 6, 3 * p[i] : 3 * p[i] + 3] = H_cp[i]
+    expected = H - H_cp_dense @ torch.block_diag(*H_pp_inv) @ H_cp_dense.T
+    assert torch.allclose(S, expected, rtol=0, atol=1e-9 * float(expected.abs().max()))
+    assert torch.allclose(S, S.T, rtol=0, atol=1e-12 * float(S.abs().max()))
