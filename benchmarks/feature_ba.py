@@ -433,6 +433,8 @@ def main() -> None:
         p.error("--realign-window must be >= 3 pixels")
     if not set(args.starts.split(",")) <= {"run", "truth", "blind"}:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
+    if args.fill_evenly and args.fill_gaps is None:
+        p.error("--fill-evenly needs --fill-gaps FACTOR")
     keyframes = read_tum(args.run / "keyframes.txt")
     if args.fill_gaps is not None or args.init_keyframes or args.live or args.keyframes_from:
         every_frame = read_tum(args.run / "trajectory.txt")
@@ -442,8 +444,6 @@ def main() -> None:
         except (OSError, ValueError) as error:
             p.error(str(error))
         print(f"keyframes of {args.keyframes_from}: {len(keyframes)}")
-    if args.fill_evenly and args.fill_gaps is None:
-        p.error("--fill-evenly needs --fill-gaps FACTOR")
     if args.fill_gaps is not None:
         if args.fill_gaps <= 1:
             p.error("--fill-gaps must be > 1")
