@@ -4,8 +4,8 @@
         [--length-linked L]]
         [--starts run,truth,blind] [--neighbours 8] [--iters 60] [--outlier 3] [--noise PX]
         [--guided] [--flow N [--flow-realign [--realign-window PX]]] [--save POSES.npy]
-        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR [--fill-evenly]] [--live]
-        [--keyframes-from RUN2]
+        [--init-keyframes [FRAMES]] [--fill-gaps FACTOR [--fill-evenly]]
+        [--live | --every-frame [--prior-every-step]] [--keyframes-from RUN2]
 
 RUN is a run's output folder (its `keyframes.txt`), DATASET the sequence it ran on, with
 ground truth. The keyframes' images get the mapper's feature tracks (`mapper/bundle.py`:
@@ -47,6 +47,11 @@ flow is observed at every frame of the run's trajectory.txt (the frames a live m
 gets), all of them are held, ORB describes the keyframes alone, and the `--odometry` prior
 holds only the steps that fewer than `--linked` points link, no length ratio where they do,
 nothing weighed (`BundleConfig.live_path`).
+
+`--every-frame` does what the mapper does with `bundle.every_frame`: every frame held, the
+flow observed at each (ORB at the keyframes alone), the `--odometry` prior on the steps
+between the described frames alone (keyframes and the initialization's frames), the frames
+between them placed by the features; `--prior-every-step` holds every step instead.
 
 `--keyframes-from RUN2` adjusts this run's path at another run's keyframes (the frames of
 RUN2's keyframes.txt, posed as this run's trajectory.txt has them): which of two runs'
@@ -93,6 +98,7 @@ from dimslam.mapper.bundle import (
     links,
     observed,
     pointing_against,
+    prior_at,
     prior_for,
     reprojection,
     slide_checked,
@@ -424,6 +430,20 @@ def main() -> None:
         "tracked steps held only where features do not link them (with --odometry), no "
         "length ratio held, nothing weighed",
     )
+    p.add_argument(
+        "--every-frame",
+        action="store_true",
+        help="what the mapper does with bundle.every_frame: with --flow, every frame of "
+        "trajectory.txt held and the flow observed at each (ORB at the keyframes alone), the "
+        "odometry prior on the steps between described frames (keyframes, initialization "
+        "frames) alone",
+    )
+    p.add_argument(
+        "--prior-every-step",
+        action="store_true",
+        help="with --every-frame: the odometry prior on every step from one frame to the "
+        "next instead",
+    )
     args = p.parse_args()
     if args.neighbours < 1 or args.iters < 0 or args.linked < 0 or args.length <= 0:
         p.error("--neighbours must be >= 1, --iters and --linked >= 0, --length > 0")
@@ -435,8 +455,15 @@ def main() -> None:
         p.error(f"--starts: run, truth and/or blind, got {args.starts!r}")
     if args.fill_evenly and args.fill_gaps is None:
         p.error("--fill-evenly needs --fill-gaps FACTOR")
+    if args.every_frame and args.flow <= 0:
+        p.error("--every-frame needs --flow N")
+    if args.every_frame and args.live:
+        p.error("--every-frame or --live, not both")
+    if args.prior_every_step and not args.every_frame:
+        p.error("--prior-every-step needs --every-frame")
     keyframes = read_tum(args.run / "keyframes.txt")
-    if args.fill_gaps is not None or args.init_keyframes or args.live or args.keyframes_from:
+    every = (args.live or args.every_frame) and args.flow > 0
+    if args.fill_gaps is not None or args.init_keyframes or every or args.keyframes_from:
         every_frame = read_tum(args.run / "trajectory.txt")
     if args.keyframes_from is not None:
         try:
@@ -467,7 +494,7 @@ def main() -> None:
             p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")
     described = {round(float(t), 4) for t in keyframes.timestamps}  # ORB features
-    if args.live and args.flow > 0:  # a live mapper's flow observes every frame it maps
+    if every:  # a live mapper's flow observes every frame it maps
         keyframes = every_frame
         print(f"every frame held: {len(keyframes)}, {len(described)} of them described")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
@@ -481,9 +508,9 @@ def main() -> None:
         if k is not None:
             images[k] = grey_image(frame.rgb)
             truth[k], at[k] = frame.T_wc, i
-        if flow is not None and args.live and k is not None:
+        if flow is not None and every and k is not None:
             flow.add(i, images[k], round(frame.timestamp, 4) in described, observe=True)
-        elif flow is not None and at and not args.live:
+        elif flow is not None and at and not every:
             flow.add(i, images[k] if k is not None else grey_image(frame.rgb), k is not None)
     if len(images) != len(wanted) or any(t is None for t in truth.values()):
         p.error(f"{args.dataset}: {len(images)} of {len(wanted)} keyframes found with ground truth")
@@ -565,7 +592,13 @@ def main() -> None:
             "slides the features see (keyframes): "
             + (", ".join(f"{a}-{b}" for a, b in check.stretches) or "none")
         )
-    prior = prior_for(blind_start, unjudged, config, free) if args.odometry is not None else None
+    prior = None
+    if args.odometry is not None and args.every_frame and not args.prior_every_step:
+        mine = [k for k in range(n) if round(float(keyframes.timestamps[k]), 4) in described]
+        prior = prior_at(blind_start, unjudged, config, torch.tensor(mine), free)
+        print(f"the odometry prior on the {len(mine)} described frames alone")
+    elif args.odometry is not None:
+        prior = prior_for(blind_start, unjudged, config, free)
     print("start   ATE cm   points-only cost   adjusted: cost   ATE cm")
     blind = None
     for name in args.starts.split(","):

@@ -46,6 +46,7 @@ from dimslam.mapper.bundle import (
     FlowTracks,
     adjust_tracks,
     grey_image,
+    prior_at,
     prior_for,
     slide_checked,
     with_flow,
@@ -450,7 +451,8 @@ class BackEnd:
 
     def _describe(self, frames: list[FrameState]) -> None:
         """Add the new keyframes and `extra` frames among `frames` (path order) to the
-        feature tracks (`bundle.enabled`), and every new frame to the flow's (`bundle.flow`)."""
+        feature tracks (`bundle.enabled`), and every new frame to the flow's (`bundle.flow`;
+        with `bundle.every_frame` observed there and held as an `extra` frame)."""
         if self.tracks is None:
             return
         newest = max(self.tracks.keyframes, default=-1)
@@ -460,7 +462,10 @@ class BackEnd:
             held = self._held(f)
             grey = grey_image(f.rgb) if held or self.flow is not None else None
             if self.flow is not None:
-                self.flow.add(f.index, grey, held)
+                every = self.cfg.bundle.every_frame and not held
+                self.flow.add(f.index, grey, held, observe=every)
+                if every and f.index in self.flow:
+                    self.extra.add(f.index)  # held, not described (ORB)
             if held and f.index > newest:
                 self.tracks.add(f.index, grey)
 
@@ -506,7 +511,11 @@ class BackEnd:
                     indices[first],
                     indices[last],
                 )
-        prior = prior_for(start, obs, cfg, free)
+        if cfg.every_frame and not self._live_path():  # the prior between described frames
+            at = [k for k, kf in enumerate(keyframes) if kf.index in self.tracks]
+            prior = prior_at(start, obs, cfg, torch.tensor(at), free)
+        else:
+            prior = prior_for(start, obs, cfg, free)
         result = adjust_tracks(self.tracks, indices, start, K, cfg, prior, self.flow, free)
         # The adjustment holds only two keyframes, so the path as a whole may come out
         # turned or scaled about them.

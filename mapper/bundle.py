@@ -247,6 +247,15 @@ class BundleConfig:
         "frame (docs/results.md, session 67). Off: a live run keeps its tracked poses.",
     )
 
+    every_frame: bool = option(
+        False,
+        "Hold every frame in the end-of-run adjustment, not the keyframes alone: the flow's "
+        "corners (`flow`) observed at each (ORB still at the keyframes and the "
+        "initialization's frames), the odometry prior on the steps from one of those to the "
+        "next alone, so that the frames between them are placed by the features. A "
+        "keyframe gap leaves the scale no step to break at.",
+    )
+
     def live_path(self) -> BundleConfig:
         """The adjustment of a live path (`live`): the tracked steps held only where the
         features do not link their keyframes (`linked`), their lengths there alone, and no
@@ -949,9 +958,17 @@ class Prior:
     group: torch.Tensor | None = None
     """Each residual's kind (`odometry_prior`'s: 0 turns, 1 directions, 2 lengths; -1 none),
     the variance components `variance_factors` estimates."""
+    at: torch.Tensor | None = None
+    """The poses (path order) it reads of a larger set, `residuals` and `first` being over
+    them alone (`on`); None: every pose."""
 
     def __call__(self, T_cw: torch.Tensor) -> torch.Tensor:
-        return self.residuals(T_cw)
+        return self.residuals(T_cw if self.at is None else T_cw[self.at])
+
+    def on(self, at: torch.Tensor) -> Prior:
+        """This prior, made on poses `at` (increasing indices) of a larger set, over that
+        set: the odometry of the keyframes alone where every frame is adjusted."""
+        return dataclasses.replace(self, at=at)
 
     def weighed(self, factors: torch.Tensor) -> Prior:
         """The same prior with each group's variance multiplied by its `factors[group]`
@@ -968,6 +985,14 @@ class Prior:
         share no residual, so one central difference per colour (index mod `reach`) and
         coordinate gives every pose of that colour's columns at once (float64: within 1e-6
         of the exact Jacobian, as `tests/mapper/test_bundle.py` checks against autograd's)."""
+        if self.at is not None:  # over the poses it reads, their columns in the whole system
+            moves, column = moving(len(T_cw), fixed)
+            mine = moves[self.at]
+            r, J_at = dataclasses.replace(self, at=None).jacobian(T_cw[self.at], ~mine)
+            J = torch.zeros(len(r), 6 * int(moves.sum()), dtype=T_cw.dtype)
+            blocks = column[self.at][mine]
+            J[:, (blocks[:, None] * 6 + torch.arange(6)).ravel()] = J_at
+            return r, J
         n = len(T_cw)
         index = torch.arange(n)
         moves, column = moving(n, fixed)
@@ -1100,6 +1125,25 @@ def prior_for(
         pooled=cfg.weigh_steps,
         unlinked_only=not cfg.steps_linked,
     )
+
+
+def prior_at(
+    T_wc: torch.Tensor,
+    obs: Observations,
+    cfg: BundleConfig,
+    at: torch.Tensor,
+    free: torch.Tensor | None = None,
+) -> Prior:
+    """`prior_for` the poses `at` (increasing) of `T_wc` alone, over them all (`Prior.on`):
+    the steps from one of them to the next, linked by the points both see; a step is free
+    where any step of `free` between them is."""
+    where = torch.full((len(T_wc),), -1, dtype=torch.long)
+    where[at] = torch.arange(len(at))
+    mine = where[obs.k] >= 0
+    seen = Observations(where[obs.k[mine]], obs.p[mine], obs.uv[mine], obs.sigma[mine])
+    if free is not None:
+        free = torch.stack([free[a:b].any() for a, b in zip(at[:-1], at[1:], strict=True)])
+    return prior_for(T_wc[at], seen, cfg, free).on(at)
 
 
 def feature_directions(

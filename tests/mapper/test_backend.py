@@ -216,6 +216,33 @@ def test_the_feature_bundle_adjustment_undoes_a_scale_drift_and_the_frames_follo
     _assert_one_scale(back, truth, drifted)
 
 
+@pytest.mark.parametrize("every", [True, False])
+def test_every_frame_held_places_the_frames_between_keyframes(tmp_path, every):
+    """`bundle.every_frame`: the flow is observed at every frame and the adjustment holds
+    them all, ORB still describing the keyframes alone: frame 7 (between keyframes 6 and 9),
+    tracked 1 cm off, comes back to the path, and the drift goes as with the keyframes
+    alone. Without it frame 7 follows keyframe 6 with its error."""
+    settings = {"bundle.every_frame": "true" if every else "false"}
+    back, frames, truth, drifted = _drifted(tmp_path, **settings)
+    frames[7].T_wc = frames[7].T_wc.clone()
+    frames[7].T_wc[0, 3] += 0.01
+    back.add(frames)
+    back.initialized = True
+    back._anchor(frames)
+    back._describe(frames)
+    back.adjust_keyframes()
+    assert sorted(back.tracks.keyframes) == list(range(0, 22, 3))
+    assert back.extra == ({i for i in range(22) if i % 3} if every else set())
+    final = back.trajectory().poses
+    fit = umeyama(final[:, :3, 3], truth[:, :3, 3].double().numpy())
+    error = torch.from_numpy(fit.apply_poses(final)[:, :3, 3]) - truth[:, :3, 3].double()
+    if every:  # 3 mm (the other frames 0.2-1 mm)
+        _assert_one_scale(back, truth, drifted)
+        assert float(error[7].norm()) < 0.005
+    else:  # 12 mm
+        assert float(error[7].norm()) > 0.009
+
+
 @pytest.mark.parametrize("extra", [True, False])
 def test_the_initialization_frames_the_rule_marks_join_the_adjustment(tmp_path, extra):
     """`bundle.init_frames`: frames 3, 6 and 9 of the drifted path, not keyframes (the

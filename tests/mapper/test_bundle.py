@@ -172,6 +172,29 @@ def test_the_priors_jacobian_by_colours_is_autograds(length, held):
     assert torch.allclose(J, expected, atol=1e-6)
 
 
+def test_a_prior_on_some_poses_has_their_columns_of_the_whole_jacobian():
+    """`Prior.on`: the keyframes' odometry (poses 0, 3, 4, 7, 8 of 9) over every pose, pose
+    4 held: the Jacobian's columns are those of the poses it reads, zero for the others."""
+    T_wc, _, _ = _scene(cameras=9)
+    at = torch.tensor([0, 3, 4, 7, 8])
+    prior = odometry_prior(T_wc[at], 0.2, 0.02, 0.05, torch.tensor([0, 5, 20, 0]), 10).on(at)
+    T_cw = _perturbed(T_wc, 0.05)
+    fixed = torch.arange(9) == 4
+
+    def moved(step):
+        T = T_cw.clone()
+        T[~fixed] = pose.exp_se3(step.reshape(8, 6)) @ T_cw[~fixed]
+        return prior(T)
+
+    expected = torch.autograd.functional.jacobian(moved, torch.zeros(48, dtype=torch.float64))
+    r, J = prior.jacobian(T_cw, fixed)
+    assert torch.allclose(r, prior(T_cw)) and len(r) == len(prior.first)
+    assert float(expected.abs().max()) > 1.0
+    assert torch.allclose(J, expected, atol=1e-6)
+    # poses 1, 2, 5, 6 are the system's blocks 1, 2, 4, 5 (pose 4 held has none)
+    assert float(J.reshape(len(r), 8, 6)[:, [1, 2, 4, 5]].abs().max()) == 0
+
+
 def test_the_odometry_prior_places_a_pose_no_feature_sees():
     T_wc, X, obs = _scene()
     blind = obs.k != 5
@@ -637,6 +660,24 @@ def test_the_benchmark_says_which_keyframes_it_cannot_find(tmp_path, monkeypatch
     write_sequence(data, frames=3, width=80, height=60)
     err = usage_error(monkeypatch, capsys, fba.main, ["feature_ba.py", str(run), str(data)])
     assert "0 of 1 keyframes found" in err
+
+
+@pytest.mark.parametrize(
+    ("flags", "needs"),
+    [
+        (["--fill-evenly"], "--fill-gaps FACTOR"),
+        (["--every-frame"], "--flow N"),
+        (["--every-frame", "--live", "--flow", "300"], "not both"),
+        (["--prior-every-step"], "needs --every-frame"),
+    ],
+)
+def test_the_benchmark_refuses_a_flag_without_the_one_it_needs(
+    tmp_path, monkeypatch, capsys, flags, needs
+):
+    """Before any file is read: RUN and DATASET do not exist here."""
+    fba = benchmark(monkeypatch, "feature_ba")
+    argv = ["feature_ba.py", str(tmp_path / "run"), str(tmp_path / "seq"), *flags]
+    assert needs in usage_error(monkeypatch, capsys, fba.main, argv)
 
 
 def test_the_benchmark_carries_every_frame_as_the_mapper_does(monkeypatch):
