@@ -494,7 +494,7 @@ def main() -> None:
             p.error(str(error))
         print(f"keyframes with the initialization's frames: {len(keyframes)}")
     described = {round(float(t), 4) for t in keyframes.timestamps}  # ORB features
-    if every:  # a live mapper's flow observes every frame it maps
+    if every:  # the flow observes every frame (a live mapper's, or with bundle.every_frame)
         keyframes = every_frame
         print(f"every frame held: {len(keyframes)}, {len(described)} of them described")
     reader = open_dataset(args.dataset, options=ReaderOptions(width=args.width))
