@@ -594,7 +594,7 @@ def main() -> None:
         )
     prior = None
     if args.odometry is not None and args.every_frame and not args.prior_every_step:
-        mine = [k for k in range(n) if round(float(keyframes.timestamps[k]), 4) in described]
+        mine = [k for k in range(n) if indices[k] in tracks]  # as the mapper picks them
         prior = prior_at(blind_start, unjudged, config, torch.tensor(mine), free)
         print(f"the odometry prior on the {len(mine)} described frames alone")
     elif args.odometry is not None:
