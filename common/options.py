@@ -96,6 +96,7 @@ def apply_overrides(cfg: T, overrides: dict[str, str]) -> T:
         ValueError: naming the field for an unknown name or a value of the wrong type.
     """
     known = {name: kind for name, kind, _, _ in _leaf_fields(cfg)}
+    changes = _Section()
     for name, text in overrides.items():
         if name not in known:
             raise ValueError(f"unknown setting {name!r}")
@@ -103,8 +104,26 @@ def apply_overrides(cfg: T, overrides: dict[str, str]) -> T:
             value = _parse(known[name], text)
         except (ValueError, TypeError, StopIteration) as e:
             raise ValueError(f"--{name}: cannot use {text!r} ({e})") from None
-        cfg = _replace_path(cfg, name.split("."), value)
-    return cfg
+        *sections, leaf = name.split(".")
+        inner = changes
+        for part in sections:
+            inner = inner.setdefault(part, _Section())
+        inner[leaf] = value
+    return _replaced(cfg, changes)
+
+
+class _Section(dict):
+    """New values of some fields of one config section (nested sections: `_Section`s)."""
+
+
+def _replaced(cfg: Any, changes: _Section) -> Any:
+    """`cfg` with `changes`: each section is made once with all its new values, so that its
+    checks (`__post_init__`) see settings that only go together, in any order given."""
+    fields = {
+        k: _replaced(getattr(cfg, k), v) if isinstance(v, _Section) else v
+        for k, v in changes.items()
+    }
+    return dataclasses.replace(cfg, **fields)
 
 
 def overrides_or_exit(
@@ -130,13 +149,6 @@ def setting(text: str) -> tuple[str, str]:
     if not eq or not key.strip():
         raise argparse.ArgumentTypeError(f"want KEY=VALUE, got {text!r}")
     return key.strip(), value.strip()
-
-
-def _replace_path(cfg: Any, path: list[str], value: Any) -> Any:
-    if len(path) == 1:
-        return dataclasses.replace(cfg, **{path[0]: value})
-    inner = _replace_path(getattr(cfg, path[0]), path[1:], value)
-    return dataclasses.replace(cfg, **{path[0]: inner})
 
 
 def to_dict(cfg: Any) -> dict:

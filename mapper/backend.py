@@ -207,6 +207,20 @@ class BackEnd:
             with self._timed("map"):
                 iters = self.cfg.mapper.live_iters if short else None
                 result = self.mapper.map(window, self.keyframes, iters)
+        reclaim = self.cfg.map.reclaim_every
+        if reclaim > 0 and self.rounds % reclaim == 0:  # round 0: the initialization
+            begun = time.perf_counter()
+            with self._timed("reclaim"):
+                frames = self.keyframes + [f for f in window if not f.keyframe]
+                freed = self.mapper.reclaim(frames)
+            log.info(
+                "the map forgot %.1f MB of cells no ray of %d frames stops near now "
+                "(%.1f MB kept, %.1f s)",
+                freed / 2**20,
+                len(frames),
+                self.field.memory_bytes() / 2**20,
+                time.perf_counter() - begun,
+            )
         fresh = self._fresh(window)
         self._anchor(fresh)
         every = self.cfg.mapper.global_every

@@ -28,7 +28,13 @@ import torch
 from dimslam.common.geometry.camera import Camera
 from dimslam.common.map import mesh as meshing
 from dimslam.common.map.field import MapConfig, make_field
-from dimslam.common.map.render import RenderConfig, camera_rays, render_chunked, render_pixels
+from dimslam.common.map.render import (
+    RenderConfig,
+    camera_rays,
+    render_chunked,
+    render_pixels,
+)
+from dimslam.common.map.render import sample_depths as ray_depths
 from dimslam.common.optim.objective import LossConfig, WindowLoss, window_objective
 from dimslam.common.optim.window import (
     FrameState,
@@ -78,6 +84,9 @@ MESH_GATE_SIGMA = 0.1
 """... over a Gaussian of this share of the mesh's width,"""
 MESH_GATE_SUPPORT = 0.1
 """... resting on at least this much of its weight."""
+RECLAIM_WIDTH = 40
+"""Width of the keyframes' images whose rays say which fine cells the sparse map keeps
+(`Mapper.reclaim`): a finest block (8 cells) spans several of their pixels at room depths."""
 SCALE_ITERS = 3
 """Map-only iterations (times `init_grow_iters`) that measure the depth of frame 0 a restart
 from tracked corners gives, before its poses are scaled to the gauge."""
@@ -563,6 +572,34 @@ class Mapper:
             pose_gate=self.cfg.pose_gate,
         )
         return MapRound(stats, tuple(f.index for f in window))
+
+    def reclaim(self, frames: list[FrameState]) -> int:
+        """The sparse map forgets the cells of its fine levels that no ray of `frames` (at
+        `RECLAIM_WIDTH` px, every pixel) now stops near (`map.fine_band`, `map.reclaim_every`):
+        it keeps what those rays would store now.
+
+        Returns:
+            Bytes freed.
+        """
+        reclaim = getattr(self.field, "reclaim", None)
+        band = self.map_cfg.fine_band
+        if reclaim is None or band <= 0 or not frames:
+            return 0
+        device = self.field.bound.device
+        small = self.camera.resized(min(self.camera.width, RECLAIM_WIDTH))
+        uv = small.pixels(device)
+        # Steps shorter than the finest voxel: every cell of the band holds a point.
+        steps = 2 * math.ceil(band / min(self.map_cfg.voxel_sizes)) + 1
+        around = torch.linspace(-band, band, steps, device=device)
+        points = []
+        with torch.no_grad():
+            for f in frames:
+                origins, directions = camera_rays(small, uv, f.T_wc.detach().to(device))
+                _, reach, stop = ray_depths(self.field, origins, directions, self.render_cfg)
+                t = stop[:, None] + around
+                kept = (stop[:, None] < self.render_cfg.far) & (t <= reach[:, None])  # as seen
+                points.append((origins[:, None] + t[..., None] * directions[:, None])[kept])
+        return reclaim(torch.cat(points), self._map_optimizer)
 
     def _free(self, f: FrameState) -> bool:
         """Whether an optimization may move the frame's pose: not frame 0's (`hold_first`)."""

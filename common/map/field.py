@@ -56,13 +56,29 @@ class MapConfig:
     fine_band: float = option(
         0.0,
         "Sparse grids: the finest levels (those with colour) are stored only within this "
-        "distance of where rays stop, map units (0: wherever rays see, as the coarse levels).",
+        "distance of where rays stop (their transmittance falls to one half), map units "
+        "(0: wherever rays see, as the coarse levels).",
+    )
+    reclaim_every: int = option(
+        0,
+        "Sparse grids with `fine_band`: every this many mapping rounds (and after the "
+        "initialization) the finest levels forget the blocks that no keyframe's ray now stops "
+        "near: what the band stored where surfaces used to render (0: never).",
     )
     grids: str = option(
         "dense",
         "dense: every cell of the bound stored; sparse: blocks of cells stored where the "
         "mapper's rays have looked, growing with the scene (common/map/sparse.py).",
     )
+
+    def __post_init__(self) -> None:
+        if self.reclaim_every < 0:
+            raise ValueError(f"map.reclaim_every must be >= 0, got {self.reclaim_every}")
+        if self.reclaim_every and (self.grids != "sparse" or self.fine_band <= 0):
+            raise ValueError(
+                "map.reclaim_every needs map.grids sparse and map.fine_band > 0: only the "
+                "band's blocks are forgotten, and without one rays store them again at once"
+            )
 
 
 @dataclass(frozen=True)
@@ -320,6 +336,34 @@ class SparseField(Field):
                 yield self
             finally:
                 self._seen.clear()  # seen after the last step: the next optimization sees them
+
+    @torch.no_grad()
+    def reclaim(self, points: torch.Tensor, optimizer: torch.optim.Optimizer | None = None) -> int:
+        """Forget the blocks of the levels `fine_band` stores near where rays stop that hold
+        no corner of a cell of `points` `(N, 3)` (where rays stop now); `optimizer`, over
+        these grids, follows them.
+
+        Returns:
+            Bytes freed.
+        """
+        fine = self.n_color_levels if self.cfg.fine_band > 0 else 0
+        if not fine:
+            return 0
+        before = self.memory_bytes()
+        first = len(self.cfg.voxel_sizes) - fine
+        for grids, start in ((self.geometry, first), (self.color, 0)):
+            banded = grids.blocks[:, 0] >= start
+            old = grids.atlas
+            bricks = grids.forget(banded & ~grids.holding(points, slice(start, None)))
+            if bricks is None:
+                continue
+            if old.grad is not None:
+                grids.atlas.grad = grids.moved(old.grad, bricks)
+            if optimizer is not None:
+                _swap_parameter(
+                    optimizer, old, grids.atlas, lambda v, g=grids, b=bricks: g.moved(v, b)
+                )
+        return before - self.memory_bytes()
 
     def follow(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
         for grids in self._grids():

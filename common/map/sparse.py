@@ -132,14 +132,7 @@ class SparseGrids(torch.nn.Module):
         """
         if p.numel() == 0:
             return 0
-        level = torch.arange(self.levels, device=p.device)[levels]
-        base = torch.floor(p[:, None, :] / self.voxels[level][None, :, None]).int()
-        missing = ~self._complete_on(base, level)
-        if not bool(missing.any()):
-            return 0
-        corners = base[missing][:, None, :] + self._unit  # (M, 8, 3)
-        lv = level.view(1, -1).expand(missing.shape)[missing][:, None].expand(-1, 8)
-        new = _unpack(torch.unique(_pack(lv, (corners >> 3).long()).view(-1)))
+        new = self._cell_blocks(p, levels, missing_only=True)
         new = new[self._find(new[:, 0], new[:, 1:]) < 0]
         count = new.shape[0]
         if count == 0:
@@ -159,6 +152,70 @@ class SparseGrids(torch.nn.Module):
         touched = self._find(new[:, None, 0].expand(-1, 8).reshape(-1), lower.reshape(-1, 3))
         self._link(torch.unique(touched[touched >= 0]))
         return count
+
+    def _cell_blocks(self, p: torch.Tensor, levels: slice, missing_only: bool) -> torch.Tensor:
+        """`(M, 4)` level and coordinates of the blocks holding the 8 corners of the cells of
+        points `(N, 3)` on `levels`, each once (`missing_only`: of the cells not yet stored
+        whole)."""
+        level = torch.arange(self.levels, device=p.device)[levels]
+        base = torch.floor(p[:, None, :] / self.voxels[level][None, :, None]).int()
+        if missing_only:
+            wanted = ~self._complete_on(base, level)
+        else:
+            wanted = torch.ones(base.shape[:2], dtype=torch.bool, device=p.device)
+        corners = base[wanted][:, None, :] + self._unit  # (M, 8, 3)
+        lv = level.view(1, -1).expand(wanted.shape)[wanted][:, None].expand(-1, 8)
+        return _unpack(torch.unique(_pack(lv, (corners >> 3).long()).view(-1)))
+
+    @torch.no_grad()
+    def holding(self, p: torch.Tensor, levels: slice = slice(None)) -> torch.Tensor:
+        """`(B,)` bool: the stored blocks holding a corner of a cell of points `(N, 3)` on
+        `levels`."""
+        held = torch.zeros(self.blocks.shape[0], dtype=torch.bool, device=self.blocks.device)
+        if p.numel():
+            blocks = self._cell_blocks(p, levels, missing_only=False)
+            found = self._find(blocks[:, 0], blocks[:, 1:])
+            held[found[found >= 0]] = True
+        return held
+
+    @torch.no_grad()
+    def forget(self, gone: torch.Tensor) -> torch.Tensor | None:
+        """Stop storing blocks `gone` (`(B,)` bool): their cells read zero again, as never
+        stored, and the atlas shrinks to the blocks kept, in their order.
+
+        Returns:
+            The kept blocks' old bricks (for `moved`: gradients, optimizer state), None when
+            nothing was forgotten.
+        """
+        if not bool(gone.any()):
+            return None
+        kept = (~gone).nonzero()[:, 0]
+        bricks = torch.cat([kept.new_zeros(1), kept + 1])
+        data = self._moved(self.atlas.data, bricks)
+        self.blocks = self.blocks[kept]
+        self._replace_atlas(data)
+        self._rebuild()  # links, copies (those of forgotten owners become orphans: zero)
+        return bricks
+
+    def _moved(self, tensor: torch.Tensor, bricks: torch.Tensor) -> torch.Tensor:
+        """An atlas-shaped `tensor`'s `bricks` (old numbers, in their new order; brick 0
+        first) laid into a fresh atlas of as many bricks."""
+        C, D, _, W = tensor.shape[1:]
+        rows = D // BRICK
+        # (C, row, z, y, column, x) -> (C, brick, z, y, x)
+        old = tensor.view(C, rows, BRICK, BRICK, W // BRICK, BRICK).permute(0, 1, 4, 2, 3, 5)
+        taken = old.reshape(C, -1, BRICK, BRICK, BRICK)[:, bricks]
+        new_rows = -(-bricks.numel() // COLUMNS)
+        taken = F.pad(taken, (0, 0, 0, 0, 0, 0, 0, new_rows * COLUMNS - bricks.numel()))
+        new = taken.view(C, new_rows, COLUMNS, BRICK, BRICK, BRICK).permute(0, 1, 3, 4, 2, 5)
+        return new.reshape(1, C, new_rows * BRICK, BRICK, COLUMNS * BRICK).contiguous()
+
+    def moved(self, state: torch.Tensor, bricks: torch.Tensor) -> torch.Tensor:
+        """A tensor shaped as the atlas before `forget` (gradient, optimizer state), shaped as
+        it is now: the kept blocks' entries follow them, copies settled again."""
+        out = self._moved(state, bricks)
+        self.mirror(out)
+        return out
 
     def _complete_on(self, base: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
         """`_complete` for lowest corners `(N, l, 3)` on some `level`s `(l,)`."""

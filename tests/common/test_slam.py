@@ -51,6 +51,15 @@ def test_overrides_are_typed_and_checked():
         apply_overrides(PRESETS["tiny"], {"tracker.iters": "many"})
 
 
+def test_settings_that_only_go_together_apply_in_any_order():
+    together = {"map.reclaim_every": "4", "map.fine_band": "0.3", "map.grids": "sparse"}
+    for order in (together, dict(reversed(together.items()))):
+        cfg = apply_overrides(PRESETS["tiny"], order)
+        assert (cfg.map.reclaim_every, cfg.map.fine_band, cfg.map.grids) == (4, 0.3, "sparse")
+    with pytest.raises(ValueError, match="reclaim_every needs"):
+        apply_overrides(PRESETS["tiny"], {"map.reclaim_every": "4", "map.grids": "sparse"})
+
+
 def one_process(sequence, out) -> list[str]:
     """`dimslam run` in one process with the tiny preset (what each test adds comes after)."""
     return ["run", "--single-process", str(sequence), "--out", str(out), "--preset", "tiny"]

@@ -168,7 +168,8 @@ def test_surface_sampling_finds_the_surface_near_a_rough_prior_in_one_pass():
     assert torch.allclose(near.depth, torch.full((3,), 2.0), atol=0.03)
     assert torch.allclose(full.depth, torch.full((3,), 2.0), atol=0.08)
     assert calls == [3 * (16 + 8)]  # one evaluation, no placement rounds
-    t, reach = surface_depths(prior, cfg, gen)
+    t, reach, stop = surface_depths(prior, cfg, gen)
+    assert torch.equal(stop, prior)
     assert (t.diff(dim=-1) >= 0).all()
     assert ((t >= prior[:, None] * 0.85 - 1e-6) & (t <= reach[:, None] + 1e-6)).sum(-1).min() >= 16
 

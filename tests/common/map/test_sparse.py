@@ -220,3 +220,101 @@ def test_fine_levels_are_stored_only_near_where_rays_stop():
             assert z.min() >= 2.0 and z.max() <= 3.5  # blocks around the surface only
     coarse = field.geometry.blocks[field.geometry.blocks[:, 0] == 0, 3] * BLOCK * 0.64
     assert coarse.min() <= 0.1 and coarse.max() + BLOCK * 0.64 >= 4.0  # the whole ray
+
+
+def test_forgotten_blocks_read_zero_and_the_kept_ones_keep_their_values():
+    gen = torch.Generator().manual_seed(3)
+    near = torch.rand(300, 3, generator=gen) * 1.5
+    far = torch.rand(300, 3, generator=gen) * 1.5 + torch.tensor([1.2, 0.0, 0.0])
+    grids = filled(torch.cat([near, far]))
+    kept_before = grids.blocks[grids.holding(near)]
+    bricks = grids.forget(~grids.holding(near))
+    assert bricks is not None and bricks[0] == 0 and grids.blocks.shape[0] < 2 * len(bricks)
+    assert torch.equal(grids.blocks, kept_before)  # the kept blocks, in their order
+    kept = {tuple(b) for b in grids.blocks.tolist()}
+
+    def stored(level, v):
+        return (level, *(c // BLOCK for c in v)) in kept
+
+    probe = torch.cat([near, far, torch.rand(200, 3, generator=gen) * 3])
+    got = grids.lookup(probe)
+    for i in range(0, probe.shape[0], 7):
+        for level in range(len(VOXELS)):
+            want = trilinear(level, probe[i].double().numpy(), stored)
+            assert got[i, level, 0].item() == pytest.approx(want, abs=2e-4)  # float32 coords
+    assert grids.forget(torch.zeros(grids.blocks.shape[0], dtype=torch.bool)) is None
+
+
+def test_reclaim_keeps_the_band_where_rays_stop_now_and_adam_follows():
+    cfg = MapConfig(voxel_sizes=(0.64, 0.32, 0.16, 0.08), grids="sparse", fine_band=0.2)
+    field = SparseField(cfg)
+    depth = torch.linspace(0.1, 4.0, 200)
+    ray = torch.stack([torch.zeros(200), torch.zeros(200), depth], -1)
+    field.allocate(ray, (depth - 3.0).abs())  # the surface was at 3 m ...
+    field.allocate(ray, (depth - 1.5).abs())  # ... and is at 1.5 m now
+    optimizer = field.follow(torch.optim.Adam(field.parameters(), lr=1e-2, fused=True))
+    with field.learning():
+        sum(x.square().sum() for x in vars(field(ray)).values()).backward()
+        optimizer.step()
+    coarse = field.geometry.blocks[field.geometry.blocks[:, 0] < 2].clone()
+    moved = field.geometry.lookup(ray[depth < 2.0]).detach()
+    surface = ray[(depth > 1.3) & (depth <= 1.5)]
+    freed = field.reclaim(surface, optimizer)
+    assert freed > 0
+    for grids, levels in ((field.geometry, (2, 3)), (field.color, (0, 1))):
+        for level in levels:
+            z = grids.blocks[grids.blocks[:, 0] == level, 3] * BLOCK * grids.voxels[level]
+            assert z.max() < 2.0  # nothing left about 3 m on the fine levels
+    assert torch.equal(field.geometry.blocks[field.geometry.blocks[:, 0] < 2], coarse)
+    kept = field.geometry.lookup(ray[depth < 2.0])  # unchanged, but for the atlas coordinates
+    assert torch.allclose(kept, moved, atol=1e-6)
+    for grids in field._grids():
+        state = optimizer.state[grids.atlas]
+        assert state["exp_avg"].shape == grids.atlas.shape
+    with field.learning():  # the optimizer steps the new atlases
+        optimizer.zero_grad(set_to_none=True)
+        sum(x.square().sum() for x in vars(field(ray)).values()).backward()
+        optimizer.step()
+    for grids in field._grids():
+        flat = grids.atlas.detach().view(grids.channels, -1)
+        assert torch.allclose(flat[:, grids._owned_copies], flat[:, grids._owning], atol=1e-6)
+        assert not flat[:, grids._orphans].any()
+
+
+def test_reclaim_needs_a_sparse_map_with_a_band():
+    with pytest.raises(ValueError, match="reclaim_every needs"):
+        MapConfig(grids="sparse", reclaim_every=5)
+    with pytest.raises(ValueError, match="reclaim_every needs"):
+        MapConfig(fine_band=0.3, reclaim_every=5)
+
+
+def test_the_mapper_forgets_the_fine_cells_of_a_surface_that_moved():
+    """The plane is fitted at depth 2 before frame 0, then at depth 2 before a frame 1 m
+    ahead: its rays carve the first plane away. Reclaiming from frame 1 forgets the fine
+    cells about the first plane, and frame 1 still renders its plane."""
+    voxels = (0.5, 0.25, 0.125, 0.0625)  # the fine levels' blocks: 1 m and 0.5 m
+    cfg = replace(SMALL_MAP, voxel_sizes=voxels, grids="sparse", fine_band=0.3, reclaim_every=1)
+    m = small_mapper(
+        MapperConfig(prior_iters=80),
+        cfg,
+        RenderConfig(n_stratified=16, n_importance=8, importance_rounds=1, far=6.0),
+    )
+    m.fit_prior(FrameState(0, 0.0, None, torch.eye(4)))
+    ahead = FrameState(1, 0.1, None, pose.make_pose(torch.eye(3), torch.tensor([0.0, 0.0, 1.0])))
+    m.fit_prior(ahead)
+    uv = torch.tensor([[32.0, 24.0], [12.0, 40.0], [50.0, 8.0]])
+
+    def fine_z() -> torch.Tensor:
+        blocks = m.field.color.blocks
+        return blocks[:, 3] * BLOCK * m.field.color.voxels[blocks[:, 0]]
+
+    with torch.no_grad():
+        before = render_pixels(m.field, CAM, uv, ahead.T_wc, m.render_cfg).depth
+    assert before.sub(2.0).abs().max() < 0.3 and fine_z().min() < 2.0  # cells at both planes
+    stored = m.field.memory_bytes()
+    assert m.reclaim([ahead]) > 0 and m.field.memory_bytes() < stored
+    with torch.no_grad():
+        after = render_pixels(m.field, CAM, uv, ahead.T_wc, m.render_cfg).depth
+    assert fine_z().min() >= 2.0  # the first plane's fine cells are gone
+    # Still the plane (here nearer it: the first plane's leftovers in front of it are gone).
+    assert after.sub(2.0).abs().max() < 0.1
