@@ -28,7 +28,7 @@ from dimslam.common.config import PRESETS
 from dimslam.common.io.datasets import ReaderOptions, open_dataset
 from dimslam.common.map.render import camera_rays, render_rays, sample_depths
 from dimslam.common.map.sparse import SparseGrids
-from dimslam.common.options import apply_overrides, setting
+from dimslam.common.options import overrides_or_exit, setting
 from dimslam.common.slam import Slam
 from dimslam.mapper.mapper import RECLAIM_WIDTH
 
@@ -45,10 +45,7 @@ def main() -> None:
     if args.frames < 1:
         p.error("frames must be at least 1")
     settings = {"map.grids": "sparse", "bundle.enabled": "false", **dict(args.set)}
-    try:
-        cfg = apply_overrides(PRESETS["cpu"], settings)
-    except ValueError as e:
-        p.error(str(e))
+    cfg = overrides_or_exit(p, PRESETS["cpu"], settings)
     if cfg.map.grids != "sparse":
         p.error("this counts a sparse map's blocks: leave map.grids sparse")
     torch.set_num_threads(1)
